@@ -1,0 +1,100 @@
+"""The ``hktex`` command line.
+
+Each subcommand lives in its own module named ``cmd_<name>.py`` in this package (engine
+commands) or in ``hktex_server.cli`` (serve, worker, demo) and exposes
+``register(subparsers) -> None``; the parser's ``func`` default is the handler, which takes the
+parsed ``argparse.Namespace`` and returns a JSON-able summary dict. This module gives every
+command the same contract (INTERFACES.md section 3): ``--json`` prints a one-line summary on
+stdout, bad input exits non-zero with one line on stderr, a terminal shows a progress bar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import pkgutil
+import sys
+from typing import Any
+
+from hktex_engine.errors import HKTexError
+
+
+class TerminalProgress:
+    """A tqdm bar on a terminal, silence elsewhere; implements ``progress.Progress``."""
+
+    def __init__(self, desc: str, enabled: bool | None = None) -> None:
+        self.desc = desc
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self._bar = None
+
+    def update(self, step: int, total: int, **metrics: Any) -> None:
+        if not self.enabled:
+            return
+        if self._bar is None:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=self.desc, file=sys.stderr, leave=False)
+        self._bar.total = total
+        self._bar.n = step
+        shown = {k: f"{v:.4g}" if isinstance(v, float) else v for k, v in metrics.items()}
+        self._bar.set_postfix(shown, refresh=False)
+        self._bar.refresh()
+
+    def should_stop(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+def _command_modules() -> list[Any]:
+    modules = []
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name.startswith("cmd_"):
+            modules.append(importlib.import_module(f"{__name__}.{info.name}"))
+    try:  # the service's commands (serve, worker, demo) live with the service
+        modules.append(importlib.import_module("hktex_server.cli"))
+    except ModuleNotFoundError as exc:
+        if exc.name not in ("hktex_server", "hktex_server.cli"):
+            raise
+    return modules
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="hktex", description="Heat Kernel Textures")
+    parser.add_argument("--json", action="store_true", help="print a one-line JSON summary")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in _command_modules():
+        module.register(sub)
+    for subparser in sub.choices.values():  # `hktex CMD ... --json` works as well
+        subparser.add_argument(
+            "--json", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
+        )
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        summary = args.func(args)
+    except (HKTexError, FileNotFoundError, ValueError) as exc:
+        message = " ".join(str(exc).split()) or type(exc).__name__
+        print(f"hktex {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"hktex {args.command}: interrupted", file=sys.stderr)
+        return 130
+    if summary is not None:
+        if args.json:
+            print(json.dumps(summary, separators=(",", ":"), default=str))
+        elif isinstance(summary, dict) and summary.get("message"):
+            print(summary["message"])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
