@@ -8,9 +8,27 @@ of the canonical geometry that identifies it across uploads and caches.
 
 from __future__ import annotations
 
+import hashlib
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+import scipy.sparse as sp
+import trimesh
+from PIL import Image
+from scipy.sparse.csgraph import connected_components
+
+from hktex_engine.errors import (
+    DegenerateFacesError,
+    DisconnectedMeshError,
+    EmptyMeshError,
+    NonFiniteError,
+    NonManifoldError,
+    TextureError,
+    TooManyVerticesError,
+    UnreadableMeshError,
+)
 
 
 @dataclass
@@ -49,3 +67,567 @@ class Mesh:
 
     def to_normalised(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(points, dtype=np.float64) * self.scale + self.translation
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------
+
+#: Bumped whenever the canonical geometry behind :attr:`Mesh.content_hash` changes meaning.
+HASH_VERSION = "hktex-mesh-v1"
+
+#: A face whose area is below this fraction of (largest bounding-box side)^2 is degenerate:
+#: its cotangent weights are unbounded and the FEM matrices lose definiteness.
+DEGENERATE_AREA_FRACTION = 1e-12
+
+_TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tga", ".tif", ".tiff", ".webp")
+
+TextureSource = str | os.PathLike | np.ndarray | None
+
+
+@dataclass
+class _RawMesh:
+    """What a file parser hands to validation: unmerged positions, triangles in file order."""
+
+    positions: np.ndarray  # (p, 3) float64, file units
+    faces: np.ndarray  # (m, 3) int64 into positions
+    corner_uvs: np.ndarray | None  # (m, 3, 2) float64
+    texture: np.ndarray | None  # (H, W, 3) float32
+
+
+def load_mesh(
+    path: str | os.PathLike,
+    texture: TextureSource = None,
+    max_vertices: int = 60000,
+    file_type: str | None = None,
+) -> Mesh:
+    """Read, validate and normalise a triangle mesh file (OBJ, PLY, OFF, GLB, glTF).
+
+    ``texture`` (a path or an array) overrides whatever the file embeds or references; the
+    spot and blub OBJs name no material, so their texture must come this way. ``file_type``
+    overrides the extension (uploads may arrive under temporary names); without either the
+    format is sniffed from the first bytes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    kind = _detect_format(path, file_type)
+    if kind == "obj":
+        raw = _read_obj(path)
+    else:
+        raw = _read_with_trimesh(path, kind)
+    tex = load_texture(texture) if texture is not None else raw.texture
+    return _build_mesh(
+        raw.positions, raw.faces, raw.corner_uvs, tex, max_vertices, source_name=path.name
+    )
+
+
+def mesh_from_arrays(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    corner_uvs: np.ndarray | None = None,
+    texture: TextureSource = None,
+    max_vertices: int = 60000,
+    source_name: str = "",
+) -> Mesh:
+    """Validate and normalise in-memory arrays exactly as :func:`load_mesh` does a file."""
+    try:
+        positions = np.asarray(vertices, dtype=np.float64)
+        tri = np.asarray(faces)
+    except (TypeError, ValueError) as exc:
+        raise UnreadableMeshError(f"vertices/faces are not numeric arrays: {exc}") from None
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise UnreadableMeshError(f"vertices must have shape (n, 3), got {positions.shape}")
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise UnreadableMeshError(f"faces must have shape (m, 3), got {tri.shape}")
+    if tri.size and not np.issubdtype(tri.dtype, np.integer):
+        if not np.all(np.isfinite(tri)) or np.any(tri != np.round(tri)):
+            raise UnreadableMeshError("faces must hold integer vertex indices")
+    tri = tri.astype(np.int64)
+    if tri.size and (tri.min() < 0 or tri.max() >= len(positions)):
+        bad = int(np.flatnonzero(((tri < 0) | (tri >= len(positions))).any(axis=1))[0])
+        raise UnreadableMeshError(
+            f"face {bad} {tri[bad].tolist()} indexes a vertex outside 0..{len(positions) - 1}"
+        )
+    uvs = None
+    if corner_uvs is not None:
+        uvs = np.asarray(corner_uvs, dtype=np.float64)
+        if uvs.shape != (len(tri), 3, 2):
+            raise TextureError(f"corner_uvs must have shape ({len(tri)}, 3, 2), got {uvs.shape}")
+    tex = load_texture(texture) if texture is not None else None
+    return _build_mesh(positions, tri, uvs, tex, max_vertices, source_name=source_name)
+
+
+def _detect_format(path: Path, file_type: str | None) -> str:
+    """Pick a parser from the explicit type, the extension, or the first bytes."""
+    known = {"obj", "ply", "off", "glb", "gltf", "stl"}
+    if file_type is not None:
+        kind = file_type.lower().lstrip(".")
+        if kind not in known:
+            raise UnreadableMeshError(f"unsupported mesh format {file_type!r}")
+        return kind
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix in known:
+        return suffix
+    with open(path, "rb") as fh:
+        head = fh.read(64)
+    if head.startswith(b"glTF"):
+        return "glb"
+    if head.startswith(b"ply"):
+        return "ply"
+    if head.lstrip().startswith((b"OFF", b"COFF", b"NOFF")):
+        return "off"
+    if head.lstrip().startswith(b"{"):
+        return "gltf"
+    return "obj"
+
+
+def _read_obj(path: Path) -> _RawMesh:
+    """Strict OBJ reader keeping per-corner UVs in the file's face order.
+
+    Written by hand because trimesh's OBJ loader (5.x) silently accepts truncated lines
+    (a 2-coordinate vertex yields an (n, 2) array), raises a bare IndexError on an
+    out-of-range index, and in ``maintain_order`` mode drops the UV seams. Here every
+    malformed statement is reported with its line number.
+    """
+    data = path.read_bytes()
+    if b"\x00" in data:
+        raise UnreadableMeshError(f"{path.name}: binary data in an OBJ file (NUL byte)")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UnreadableMeshError(
+            f"{path.name}: not a text OBJ file (invalid UTF-8 at byte {exc.start})"
+        ) from None
+    positions: list[tuple[float, float, float]] = []
+    uvs: list[tuple[float, float]] = []
+    tri_v: list[tuple[int, int, int]] = []
+    tri_t: list[tuple[int, int, int]] = []
+    mtllibs: list[str] = []
+    materials_used: list[str] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        hash_at = line.find("#")
+        if hash_at >= 0:
+            line = line[:hash_at]
+        tokens = line.split()
+        if not tokens:
+            continue
+        key = tokens[0]
+        if key == "v":
+            positions.append(_obj_floats(tokens, 3, lineno, "vertex"))
+        elif key == "vt":
+            uvs.append(_obj_floats(tokens, 2, lineno, "texture coordinate"))
+        elif key == "f":
+            corners = [_obj_corner(tok, len(positions), len(uvs), lineno) for tok in tokens[1:]]
+            if len(corners) < 3:
+                raise UnreadableMeshError(
+                    f"{path.name} line {lineno}: a face needs at least 3 corners, got {len(corners)}"
+                )
+            # Fan triangulation keeps a polygon's triangles in place in the face order.
+            for i in range(1, len(corners) - 1):
+                tri_v.append((corners[0][0], corners[i][0], corners[i + 1][0]))
+                tri_t.append((corners[0][1], corners[i][1], corners[i + 1][1]))
+        elif key == "mtllib" and len(tokens) > 1:
+            mtllibs.append(line.split(None, 1)[1].strip())
+        elif key == "usemtl" and len(tokens) > 1:
+            materials_used.append(tokens[1])
+    if not positions and not tri_v:
+        raise UnreadableMeshError(f"{path.name}: no vertex or face statements (not an OBJ file?)")
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(tri_v, dtype=np.int64).reshape(-1, 3)
+    corner_uvs = None
+    t_idx = np.asarray(tri_t, dtype=np.int64).reshape(-1, 3)
+    if len(faces) and uvs and np.all(t_idx >= 0):
+        corner_uvs = np.asarray(uvs, dtype=np.float64)[t_idx]
+    texture = _obj_material_texture(path, mtllibs, materials_used)
+    return _RawMesh(pos, faces, corner_uvs, texture)
+
+
+def _obj_floats(tokens: list[str], count: int, lineno: int, what: str) -> tuple:
+    if len(tokens) - 1 < count:
+        raise UnreadableMeshError(
+            f"line {lineno}: a {what} needs {count} numbers, got {len(tokens) - 1} (truncated file?)"
+        )
+    try:
+        return tuple(float(t) for t in tokens[1 : count + 1])
+    except ValueError:
+        raise UnreadableMeshError(
+            f"line {lineno}: {what} {' '.join(tokens[1 : count + 1])!r} is not numeric"
+        ) from None
+
+
+def _obj_corner(token: str, n_pos: int, n_uv: int, lineno: int) -> tuple[int, int]:
+    """Resolve one ``v[/vt[/vn]]`` corner to 0-based (position, uv or -1) indices."""
+    parts = token.split("/")
+    try:
+        v = int(parts[0])
+        t = int(parts[1]) if len(parts) > 1 and parts[1] else None
+    except ValueError:
+        raise UnreadableMeshError(f"line {lineno}: face corner {token!r} is not an index") from None
+    v_idx = _obj_index(v, n_pos, lineno, "vertex")
+    t_idx = _obj_index(t, n_uv, lineno, "texture coordinate") if t is not None else -1
+    return v_idx, t_idx
+
+
+def _obj_index(i: int, count: int, lineno: int, what: str) -> int:
+    """OBJ indices are 1-based; negative ones count back from the latest definition."""
+    resolved = i - 1 if i > 0 else count + i
+    if i == 0 or not 0 <= resolved < count:
+        raise UnreadableMeshError(
+            f"line {lineno}: {what} index {i} is out of range (only {count} defined so far)"
+        )
+    return resolved
+
+
+def _obj_material_texture(
+    path: Path, mtllibs: list[str], materials_used: list[str]
+) -> np.ndarray | None:
+    """The diffuse map (map_Kd) of the first material the OBJ uses, if any can be found."""
+    for lib in mtllibs:
+        mtl_path = path.parent / lib
+        if not mtl_path.is_file():
+            continue
+        current = None
+        maps: dict[str | None, str] = {}
+        for line in mtl_path.read_text(errors="replace").splitlines():
+            tokens = line.strip().split()
+            if not tokens:
+                continue
+            if tokens[0] == "newmtl" and len(tokens) > 1:
+                current = tokens[1]
+            elif tokens[0] == "map_Kd" and len(tokens) > 1:
+                # Options (-s, -o, ...) precede the file name, which is the last token.
+                maps.setdefault(current, tokens[-1])
+        if not maps:
+            continue
+        name = next((m for m in materials_used if m in maps), next(iter(maps)))
+        image = mtl_path.parent / maps[name]
+        if not image.is_file():
+            raise TextureError(f"{mtl_path.name}: map_Kd {maps[name]!r} not found")
+        return load_texture(image)
+    return None
+
+
+def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
+    """PLY, OFF, STL, GLB and glTF through trimesh, unprocessed so face order is kept."""
+    try:
+        loaded = trimesh.load(str(path), file_type=kind, process=False)
+    except (MemoryError, RecursionError):
+        raise UnreadableMeshError(f"{path.name}: malformed {kind.upper()} file") from None
+    except Exception as exc:  # trimesh raises whatever its parsers hit on a bad file
+        message = str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__
+        raise UnreadableMeshError(
+            f"{path.name}: cannot parse as {kind.upper()}: {message}"
+        ) from None
+    if isinstance(loaded, trimesh.Scene):
+        geometries = _scene_meshes(loaded)
+    elif isinstance(loaded, trimesh.Trimesh):
+        geometries = [loaded]
+    else:
+        geometries = []
+    if not geometries:
+        raise UnreadableMeshError(f"{path.name}: no triangle mesh found in the {kind.upper()} file")
+    positions, faces, uv_parts, textures = [], [], [], []
+    offset = 0
+    for g in geometries:
+        v = np.asarray(g.vertices, dtype=np.float64)
+        f = np.asarray(g.faces, dtype=np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or (f.size and f.shape[1] != 3):
+            raise UnreadableMeshError(f"{path.name}: malformed vertex or face arrays")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            raise UnreadableMeshError(f"{path.name}: a face indexes a vertex out of range")
+        positions.append(v)
+        faces.append(f.reshape(-1, 3) + offset)
+        offset += len(v)
+        uv = getattr(g.visual, "uv", None)
+        uv_parts.append(
+            None if uv is None or len(uv) != len(v) else np.asarray(uv, dtype=np.float64)[f]
+        )
+        textures.append(_trimesh_texture(g))
+    corner_uvs = None
+    if all(u is not None for u in uv_parts):
+        corner_uvs = np.concatenate(uv_parts, axis=0).reshape(-1, 3, 2)
+    distinct = {id(t) for t in textures if t is not None}
+    # One texture for the whole mesh: several materials would need an atlas we do not build.
+    texture = next((t for t in textures if t is not None), None) if len(distinct) == 1 else None
+    if texture is not None and any(t is None for t in textures):
+        texture = None
+    return _RawMesh(np.concatenate(positions), np.concatenate(faces), corner_uvs, texture)
+
+
+def _scene_meshes(scene: trimesh.Scene) -> list[trimesh.Trimesh]:
+    """Every mesh instance of a scene, with its node transform applied, in graph order."""
+    out = []
+    for node in scene.graph.nodes_geometry:
+        transform, name = scene.graph[node]
+        geom = scene.geometry.get(name)
+        if not isinstance(geom, trimesh.Trimesh):
+            continue
+        geom = geom.copy()
+        geom.apply_transform(transform)
+        out.append(geom)
+    return out
+
+
+def _trimesh_texture(geom: trimesh.Trimesh) -> np.ndarray | None:
+    material = getattr(geom.visual, "material", None)
+    if material is None:
+        return None
+    image = getattr(material, "baseColorTexture", None)
+    if image is None:
+        image = getattr(material, "image", None)
+    if image is None:
+        return None
+    cache = _trimesh_texture.__dict__.setdefault("_last", {})
+    key = id(image)
+    if key not in cache:
+        cache.clear()
+        cache[key] = load_texture(np.asarray(image.convert("RGB")))
+    return cache[key]
+
+
+# ---------------------------------------------------------------------------------------------
+# Textures
+# ---------------------------------------------------------------------------------------------
+
+
+def load_texture(source: str | os.PathLike | np.ndarray) -> np.ndarray:
+    """An albedo image as float32 (H, W, 3) in [0, 1]: alpha dropped, grey expanded to RGB.
+
+    Values are kept as stored (sRGB), which is what EVALUATION.md measures PSNR in.
+    """
+    if isinstance(source, np.ndarray):
+        return _texture_from_array(source)
+    path = Path(source)
+    if not path.is_file():
+        raise TextureError(f"texture file not found: {path}")
+    try:
+        with Image.open(path) as img:
+            img.load()
+            if img.mode in ("I;16", "I;16B", "I;16L", "I"):
+                arr = np.asarray(img, dtype=np.float64)
+                arr = arr / (65535.0 if arr.max() > 255 else 255.0)
+            else:
+                arr = np.asarray(img.convert("RGB"))
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise TextureError(f"cannot read texture {path.name}: {exc}") from None
+    return _texture_from_array(arr)
+
+
+def _texture_from_array(arr: np.ndarray) -> np.ndarray:
+    arr = np.asarray(arr)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or arr.shape[2] not in (1, 2, 3, 4) or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise TextureError(f"texture must be (H, W), (H, W, 1|3|4), got shape {arr.shape}")
+    if arr.shape[2] in (1, 2):  # grey or grey + alpha
+        arr = np.repeat(arr[:, :, :1], 3, axis=2)
+    arr = arr[:, :, :3]
+    if arr.dtype == np.uint8:
+        out = arr.astype(np.float32) / 255.0
+    elif arr.dtype == np.uint16:
+        out = arr.astype(np.float32) / 65535.0
+    elif np.issubdtype(arr.dtype, np.floating):
+        out = arr.astype(np.float32)
+        if not np.all(np.isfinite(out)) or out.min() < 0.0 or out.max() > 1.0:
+            raise TextureError("a float texture must hold finite values in [0, 1]")
+    else:
+        raise TextureError(f"unsupported texture dtype {arr.dtype}")
+    return np.ascontiguousarray(out)
+
+
+def texture_hash(texture: np.ndarray | None) -> str | None:
+    """SHA-256 of a texture's float32 pixels and shape (None without texture).
+
+    Kept apart from :attr:`Mesh.content_hash` on purpose: spectra depend on geometry only, so
+    re-texturing a mesh must hit the same spectra cache entry.
+    """
+    if texture is None:
+        return None
+    tex = np.ascontiguousarray(texture, dtype="<f4")
+    h = hashlib.sha256(f"hktex-texture-v1:{tex.shape}".encode())
+    h.update(tex.tobytes())
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# Merge, validate, normalise
+# ---------------------------------------------------------------------------------------------
+
+
+def _build_mesh(
+    positions: np.ndarray,
+    faces: np.ndarray,
+    corner_uvs: np.ndarray | None,
+    texture: np.ndarray | None,
+    max_vertices: int,
+    source_name: str,
+) -> Mesh:
+    """Validate raw arrays, merge by position, normalise and hash."""
+    where = f"{source_name}: " if source_name else ""
+    if len(faces) == 0:
+        raise EmptyMeshError(f"{where}the mesh has no triangles")
+    if not np.all(np.isfinite(positions)):
+        bad = int(np.flatnonzero(~np.isfinite(positions).all(axis=1))[0])
+        raise NonFiniteError(f"{where}vertex {bad} has a non-finite coordinate {positions[bad]}")
+    if corner_uvs is not None and not np.all(np.isfinite(corner_uvs)):
+        raise TextureError(f"{where}texture coordinates contain NaN or infinity")
+    vertices, tri = merge_by_position(positions, faces)
+    if len(vertices) > max_vertices:
+        raise TooManyVerticesError(
+            f"{where}{len(vertices)} vertices after merging by position exceeds the limit "
+            f"of {max_vertices}"
+        )
+    validate_topology(vertices, tri, where)
+    centroid = vertices.mean(axis=0)
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    scale = 2.0 / extent
+    translation = -scale * centroid
+    return Mesh(
+        vertices=vertices * scale + translation,
+        faces=tri,
+        scale=scale,
+        translation=translation,
+        content_hash=geometry_hash(vertices, tri),
+        corner_uvs=corner_uvs,
+        texture=texture,
+        source_name=source_name,
+    )
+
+
+def merge_by_position(positions: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weld vertices with identical coordinates; number them by first use in the face list.
+
+    UV seams and glTF attribute splits duplicate positions; the surface's topology needs them
+    welded. Numbering by first appearance in ``faces.ravel()`` makes the result depend only on
+    the triangles (in file order), not on how a format orders or splits its vertex list, and
+    drops unreferenced vertices (they would make the mass matrix singular).
+    """
+    _, key = np.unique(positions, axis=0, return_inverse=True)
+    corner_keys = key.reshape(-1)[faces.reshape(-1)]
+    uniq_keys, first = np.unique(corner_keys, return_index=True)
+    order = np.argsort(first, kind="stable")
+    new_id = np.empty(key.max() + 1, dtype=np.int64)
+    new_id[uniq_keys[order]] = np.arange(len(order))
+    representative = np.empty(key.max() + 1, dtype=np.int64)
+    representative[key.reshape(-1)] = np.arange(len(positions))
+    vertices = positions[representative[uniq_keys[order]]]
+    return np.ascontiguousarray(vertices), new_id[corner_keys].reshape(-1, 3)
+
+
+def geometry_hash(vertices: np.ndarray, faces: np.ndarray) -> str:
+    """SHA-256 of the canonical geometry: merged file-unit vertices as float32, faces as int64.
+
+    float32 because that is what binary formats (GLB, most PLY) store: the same surface read
+    from an OBJ's decimal text and from a float32 PLY must hash alike. File units rather than
+    normalised ones, since the stored transform (and so queries in file units) depends on them.
+    """
+    h = hashlib.sha256(f"{HASH_VERSION}:{len(vertices)}:{len(faces)}".encode())
+    h.update(np.ascontiguousarray(vertices, dtype="<f4").tobytes())
+    h.update(np.ascontiguousarray(faces, dtype="<i8").tobytes())
+    return h.hexdigest()
+
+
+def validate_topology(vertices: np.ndarray, faces: np.ndarray, where: str = "") -> None:
+    """Raise the specific error for the first defect: degenerate, non-manifold, disconnected."""
+    _check_degenerate(vertices, faces, where)
+    edges, edge_faces = _check_manifold_edges(faces, where)
+    _check_manifold_vertices(vertices, faces, edges, edge_faces, where)
+    _check_connected(len(vertices), faces, where)
+
+
+def _check_degenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
+    repeated = (
+        (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+    )
+    if repeated.any():
+        f = int(np.flatnonzero(repeated)[0])
+        raise DegenerateFacesError(
+            f"{where}face {f} repeats a vertex {faces[f].tolist()} "
+            f"({int(repeated.sum())} such faces; vertices merged by position)"
+        )
+    p = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    extent = float(np.max(vertices.max(axis=0) - vertices.min(axis=0)))
+    tiny = area <= DEGENERATE_AREA_FRACTION * extent**2
+    if tiny.any():
+        f = int(np.flatnonzero(tiny)[0])
+        raise DegenerateFacesError(
+            f"{where}face {f} has (near-)zero area {area[f]:.3g} "
+            f"({int(tiny.sum())} such faces; mesh size {extent:.3g})"
+        )
+
+
+def _check_manifold_edges(faces: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every undirected edge in at most two faces; returns sorted corner edges and their faces."""
+    m = len(faces)
+    half = np.stack([faces, np.roll(faces, -1, axis=1)], axis=2).reshape(-1, 2)
+    edges = np.sort(half, axis=1)
+    edge_faces = np.repeat(np.arange(m), 3)
+    uniq, inverse, counts = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+    over = counts > 2
+    if over.any():
+        e = int(np.flatnonzero(over)[0])
+        owners = edge_faces[inverse.reshape(-1) == e]
+        raise NonManifoldError(
+            f"{where}edge ({uniq[e, 0]}, {uniq[e, 1]}) is shared by {counts[e]} faces "
+            f"(faces {', '.join(map(str, owners[:6]))})"
+        )
+    return edges, edge_faces
+
+
+def _check_manifold_vertices(
+    vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray, edge_faces: np.ndarray, where: str
+) -> None:
+    """The faces around each vertex must form one fan (one edge-connected component).
+
+    Nodes of the graph are face corners (face, vertex); two corners of the same vertex are
+    linked when their faces share an edge through that vertex. A vertex whose corners fall in
+    more than one component is a bow-tie (or two cones touching at a tip).
+    """
+    m = len(faces)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    se = edges[order]
+    same = np.all(se[1:] == se[:-1], axis=1)
+    i = np.flatnonzero(same)
+    f1, f2 = edge_faces[order][i], edge_faces[order][i + 1]
+    a, b = se[i, 0], se[i, 1]
+    corner_of = _corner_lookup(faces)
+    rows = np.concatenate([corner_of(f1, a), corner_of(f1, b)])
+    cols = np.concatenate([corner_of(f2, a), corner_of(f2, b)])
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * m, 3 * m))
+    _, label = connected_components(graph, directed=False)
+    corner_vertex = faces.reshape(-1)
+    pairs = np.unique(np.stack([corner_vertex, label], axis=1), axis=0)
+    fans = np.bincount(pairs[:, 0], minlength=len(vertices))
+    if np.any(fans > 1):
+        v = int(np.flatnonzero(fans > 1)[0])
+        raise NonManifoldError(
+            f"{where}vertex {v} at {np.round(vertices[v], 6).tolist()} is non-manifold: "
+            f"its faces form {fans[v]} separate fans"
+        )
+
+
+def _corner_lookup(faces: np.ndarray):
+    """Map (face, vertex) pairs to corner ids 3 * face + slot."""
+
+    def corner(f: np.ndarray, v: np.ndarray) -> np.ndarray:
+        slot = np.argmax(faces[f] == v[:, None], axis=1)
+        return 3 * f + slot
+
+    return corner
+
+
+def _check_connected(n: int, faces: np.ndarray, where: str) -> None:
+    rows = faces.reshape(-1)
+    cols = np.roll(faces, -1, axis=1).reshape(-1)
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    count, label = connected_components(graph, directed=False)
+    if count > 1:
+        sizes = np.bincount(label[faces[:, 0]], minlength=count)
+        sizes = np.sort(sizes)[::-1]
+        shown = ", ".join(map(str, sizes[:5])) + (", ..." if count > 5 else "")
+        raise DisconnectedMeshError(
+            f"{where}the mesh has {count} connected components (faces per component: {shown}); "
+            "HKTex needs one connected surface"
+        )
