@@ -1,0 +1,208 @@
+"""Request and response models of the REST API (INTERFACES.md section 4).
+
+These models are the API's contract: the client package mirrors them and the checked-in
+OpenAPI document is generated from them, so a field here is a promise. Times are Unix epoch
+seconds (float, UTC); ids are opaque strings. Floats in requests must be finite: JSON allows
+``NaN`` through Python's parser, and a NaN barycentric must be a 422, not a garbage colour.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+JobState = Literal["queued", "running", "cancelling", "succeeded", "failed", "cancelled"]
+SpectraState = Literal["missing", "queued", "running", "ready", "failed"]
+TaskName = Literal["fit_uv", "fit_multiview"]
+
+
+class _Strict(BaseModel):
+    """Requests: unknown fields are an error (a typo must not silently fall back to a default)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+# ---------------------------------------------------------------- requests
+
+
+class SpectralConfigIn(_Strict):
+    """Spectral grid and numerics; every field optional (engine defaults, ALGORITHM.md)."""
+
+    angles: int | None = Field(None, ge=2, le=64)
+    anisotropies: list[float] | None = Field(None, min_length=1, max_length=64)
+    k: int | None = Field(None, ge=2, le=2048)
+    k_iso: int | None = Field(None, ge=3, le=2048)
+    rotation: Literal["block", "full"] | None = None
+    evecs_dtype: Literal["float16", "float32"] | None = None
+    tangent_field: Literal["axis_smoothed", "curvature"] | None = None
+
+
+class FitParamsIn(_Strict):
+    """Fitting parameters; every field optional (engine defaults, FitParams)."""
+
+    kernels: int | None = Field(None, ge=1, le=1_000_000)
+    max_kernels: int | None = Field(None, ge=1, le=5_000_000)
+    steps: int | None = Field(None, ge=0, le=10_000_000)
+    points_per_step: int | None = Field(None, ge=1, le=1_000_000)
+    seed: int | None = Field(None, ge=0, le=2**31 - 1)
+    densify: bool | None = None
+    checkpoint_every: int | None = Field(None, ge=1, le=10_000_000)
+    lr_colors: float | None = Field(None, gt=0, le=10)
+    lr_theta: float | None = Field(None, gt=0, le=10)
+    lr_eta: float | None = Field(None, gt=0, le=10)
+    lr_threshold: float | None = Field(None, gt=0, le=10)
+    lr_sharpness: float | None = Field(None, gt=0, le=10)
+    lr_base: float | None = Field(None, gt=0, le=10)
+    lr_centers: float | None = Field(None, gt=0, le=10)
+
+
+class JobCreate(_Strict):
+    """A fitting job. ``views_id`` (from POST /v1/views) is required for ``fit_multiview``."""
+
+    mesh_id: str = Field(min_length=1, max_length=64)
+    task: TaskName = "fit_uv"
+    spectra: SpectralConfigIn = Field(default_factory=SpectralConfigIn)
+    params: FitParamsIn = Field(default_factory=FitParamsIn)
+    views_id: str | None = Field(None, min_length=1, max_length=64)
+    priority: int = Field(0, ge=-100, le=100, description="higher runs first")
+
+    @model_validator(mode="after")
+    def _views_for_multiview(self) -> JobCreate:
+        if self.task == "fit_multiview" and not self.views_id:
+            raise ValueError("fit_multiview needs views_id (upload the views with POST /v1/views)")
+        return self
+
+
+class AlbedoRequest(_Strict):
+    """Either surface locations (``face_ids`` + ``barycentrics``) or ``points`` in file units."""
+
+    face_ids: list[int] | None = None
+    barycentrics: list[list[float]] | None = None
+    points: list[list[float]] | None = None
+
+    @model_validator(mode="after")
+    def _one_kind(self) -> AlbedoRequest:
+        by_face = self.face_ids is not None or self.barycentrics is not None
+        if by_face == (self.points is not None):
+            raise ValueError(
+                "give either face_ids + barycentrics, or points (not both, not neither)"
+            )
+        if by_face and (self.face_ids is None or self.barycentrics is None):
+            raise ValueError("face_ids and barycentrics go together")
+        return self
+
+
+# ---------------------------------------------------------------- responses
+
+
+class MeshRecord(BaseModel):
+    id: str
+    name: str
+    n_vertices: int
+    n_faces: int
+    has_texture: bool
+    content_hash: str = Field(description="hash of the canonical geometry (keys spectra caches)")
+    bytes: int = Field(description="uploaded bytes (mesh + texture)")
+    checks: dict[str, Any] = Field(description="validation checks passed and mesh statistics")
+    created_at: float
+
+
+class MeshList(BaseModel):
+    items: list[MeshRecord]
+
+
+class SpectraRecord(BaseModel):
+    """Spectra are shared per (mesh content, config); ``job_id`` is set while one computes."""
+
+    id: str
+    mesh_hash: str
+    config: dict[str, Any]
+    config_hash: str
+    state: SpectraState
+    job_id: str | None = None
+    error: str | None = None
+    summary: dict[str, Any] | None = None
+    created_at: float
+    updated_at: float
+
+
+class JobProgress(BaseModel):
+    step: int = 0
+    total: int = 0
+    loss: float | None = None
+    kernel_count: int | None = None
+    metrics: dict[str, float] = Field(default_factory=dict)
+    updated_at: float | None = None
+
+
+class JobResult(BaseModel):
+    kernelset_id: str | None = None
+    spectra_id: str | None = None
+
+
+class JobRecord(BaseModel):
+    id: str
+    task: str
+    state: JobState
+    mesh_id: str | None = None
+    spectra_id: str | None = None
+    views_id: str | None = None
+    priority: int = 0
+    attempts: int = 0
+    max_attempts: int = 1
+    cancel_requested: bool = False
+    device: str | None = None
+    progress: JobProgress = Field(default_factory=JobProgress)
+    error: str | None = None
+    result: JobResult = Field(default_factory=JobResult)
+    params: dict[str, Any] = Field(default_factory=dict)
+    created_at: float
+    started_at: float | None = None
+    finished_at: float | None = None
+
+
+class JobList(BaseModel):
+    items: list[JobRecord]
+
+
+class KernelSetRecord(BaseModel):
+    id: str
+    job_id: str | None = None
+    mesh_id: str | None = None
+    spectra_id: str
+    n_kernels: int
+    bytes: int = Field(description="size of the .hkt file as stored")
+    metrics: dict[str, Any] = Field(default_factory=dict)
+    manifest: dict[str, Any] = Field(default_factory=dict)
+    created_at: float
+
+
+class ViewsRecord(BaseModel):
+    id: str
+    n_files: int
+    bytes: int = Field(description="uncompressed bytes of the extracted dataset")
+    created_at: float
+
+
+class AlbedoResponse(BaseModel):
+    count: int
+    colors: list[list[float]] = Field(description="(P, 3) RGB in the kernel set's colour space")
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class QueueDepth(BaseModel):
+    queued: int
+    running: int
+
+
+class Info(BaseModel):
+    version: str
+    devices: list[str]
+    workers: int
+    queue: QueueDepth
+    owner: str
+    limits: dict[str, int]

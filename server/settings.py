@@ -1,0 +1,84 @@
+"""Service settings, from the environment (``HKTEX_*``) and the command line.
+
+One object carries every limit so a deployment can tighten them without code; the defaults
+suit one shared workstation (SQLite under the data dir, loopback only, one worker slot).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+LOCAL_OWNER = "local"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="HKTEX_", extra="ignore")
+
+    data_dir: Path = Field(Path("hktex-data"), description="blobs, spectra, kernel sets, SQLite")
+    database_url: str | None = Field(
+        None, description="SQLAlchemy URL; SQLite in data_dir if unset"
+    )
+    host: str = "127.0.0.1"
+    port: int = 8000
+    tokens: str = Field("", description='"token1:owner1,token2:owner2"')
+
+    # supervisor
+    workers: int = Field(1, ge=0, description="job slots of an embedded/standalone supervisor")
+    devices: str = Field("", description='CUDA device ids for the slots ("0,1"); "" = auto')
+    lease_seconds: float = 30.0
+    heartbeat_seconds: float = 5.0
+    poll_seconds: float = 0.5
+    cancel_grace_seconds: float = 10.0
+    kill_grace_seconds: float = 5.0
+    max_attempts: int = Field(3, ge=1)
+    enable_test_tasks: bool = Field(False, description="allow the internal 'sleep' job (tests)")
+
+    # limits
+    max_upload_bytes: int = 512 * 1024 * 1024
+    max_archive_bytes: int = 2 * 1024 * 1024 * 1024
+    max_archive_members: int = 20_000
+    max_vertices: int = 60_000
+    max_batch_points: int = 2_000_000
+    max_jobs_per_owner: int = Field(50, description="queued + running jobs an owner may hold")
+    max_running_per_owner: int = Field(2, description="fair share: running jobs per owner")
+    validate_timeout_seconds: float = 120.0
+    query_cache_size: int = 4
+    query_chunk_points: int = 65_536
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'hktex.db').resolve()}"
+
+    def token_owners(self) -> dict[str, str]:
+        """Parse ``tokens`` into {token: owner}; malformed entries are a startup error."""
+        owners: dict[str, str] = {}
+        for entry in filter(None, (e.strip() for e in self.tokens.split(","))):
+            token, sep, owner = entry.partition(":")
+            if not sep or not token.strip() or not owner.strip():
+                raise ValueError(f"HKTEX_TOKENS entry {entry!r} is not 'token:owner'")
+            owners[token.strip()] = owner.strip()
+        return owners
+
+    def device_list(self) -> list[str]:
+        return [d.strip() for d in self.devices.split(",") if d.strip()]
+
+    def check_bind(self) -> None:
+        """Refuse to listen beyond loopback without tokens (anyone could read everyone's data)."""
+        if not self.token_owners() and not is_loopback(self.host):
+            raise ValueError(
+                f"refusing to bind {self.host} without tokens: set HKTEX_TOKENS or bind 127.0.0.1"
+            )
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
