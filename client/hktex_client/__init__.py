@@ -25,9 +25,11 @@ from hktex_client.models import (
     Info,
     JobProgress,
     JobRecord,
+    JobResult,
     KernelSetRecord,
     MeshRecord,
     SpectraRecord,
+    ViewsRecord,
 )
 from hktex_client.npy import NPY_MEDIA_TYPE, from_npy_bytes, to_npy_bytes
 from hktex_client.sse import ServerSentEvent
@@ -48,6 +50,7 @@ __all__ = [
     "JobFailed",
     "JobProgress",
     "JobRecord",
+    "JobResult",
     "KernelSetRecord",
     "MeshRecord",
     "NotFound",
@@ -58,6 +61,7 @@ __all__ = [
     "Unauthorized",
     "UnsupportedMediaType",
     "ValidationFailed",
+    "ViewsRecord",
     "WaitTimeout",
     "__version__",
     "from_npy_bytes",

@@ -22,6 +22,7 @@ from hktex_client.models import (
     KernelSetRecord,
     MeshRecord,
     SpectraRecord,
+    ViewsRecord,
 )
 from hktex_client.npy import NPY_MEDIA_TYPE, face_query_array, from_npy_bytes, to_npy_bytes
 
@@ -143,13 +144,31 @@ def submit_job(
     task: str,
     spectra: Mapping[str, Any] | None = None,
     params: Mapping[str, Any] | None = None,
+    views_id: str | None = None,
+    priority: int | None = None,
 ) -> Call[JobRecord]:
     body: dict[str, Any] = {"mesh_id": mesh_id, "task": task}
     if spectra is not None:
         body["spectra"] = _drop_none(spectra)
     if params is not None:
         body["params"] = _drop_none(params)
+    if views_id is not None:
+        body["views_id"] = views_id
+    if priority is not None:
+        body["priority"] = priority
     return Call("POST", f"{API}/jobs", _model(JobRecord), json=body)
+
+
+def upload_views(path: str | Path) -> Call[ViewsRecord]:
+    archive = Path(path)
+    if not archive.is_file():
+        raise FileNotFoundError(f"no views archive at {archive}")
+    return Call(
+        "POST",
+        f"{API}/views",
+        _model(ViewsRecord),
+        uploads=[("archive", archive, "application/octet-stream")],
+    )
 
 
 def get_job(job_id: str) -> Call[JobRecord]:

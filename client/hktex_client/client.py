@@ -28,6 +28,7 @@ from hktex_client.models import (
     KernelSetRecord,
     MeshRecord,
     SpectraRecord,
+    ViewsRecord,
 )
 from hktex_client.sse import ServerSentEvent, aiter_events, iter_events
 
@@ -185,20 +186,38 @@ class Client:
         task: str,
         spectra: dict[str, Any] | None = None,
         params: dict[str, Any] | None = None,
+        views_id: str | None = None,
+        priority: int | None = None,
     ) -> JobRecord:
-        return self._run(calls.submit_job(mesh_id, task, spectra, params))
+        """Queue a job (``task`` "fit_uv" or "fit_multiview"); 202 with its record."""
+        return self._run(calls.submit_job(mesh_id, task, spectra, params, views_id, priority))
 
     def fit_uv(
-        self, mesh_id: str, spectra: dict[str, Any] | None = None, **params: Any
+        self,
+        mesh_id: str,
+        spectra: dict[str, Any] | None = None,
+        priority: int | None = None,
+        **params: Any,
     ) -> JobRecord:
         """Queue a UV fit (``kernels``, ``max_kernels``, ``steps``, ``seed``, ...)."""
-        return self.submit_job(mesh_id, "fit_uv", spectra, params)
+        return self.submit_job(mesh_id, "fit_uv", spectra, params, priority=priority)
 
     def fit_multiview(
-        self, mesh_id: str, spectra: dict[str, Any] | None = None, **params: Any
+        self,
+        mesh_id: str,
+        views_id: str,
+        spectra: dict[str, Any] | None = None,
+        priority: int | None = None,
+        **params: Any,
     ) -> JobRecord:
-        """Queue a multi-view fit; ``params`` name the views as the service expects."""
-        return self.submit_job(mesh_id, "fit_multiview", spectra, params)
+        """Queue a multi-view fit on views uploaded with :meth:`upload_views`."""
+        return self.submit_job(
+            mesh_id, "fit_multiview", spectra, params, views_id=views_id, priority=priority
+        )
+
+    def upload_views(self, path: str | Path) -> ViewsRecord:
+        """Upload a multi-view dataset archive (images + cameras), streamed."""
+        return self._run(calls.upload_views(path))
 
     def get_job(self, job_id: str) -> JobRecord:
         return self._run(calls.get_job(job_id))
@@ -388,18 +407,34 @@ class AsyncClient:
         task: str,
         spectra: dict[str, Any] | None = None,
         params: dict[str, Any] | None = None,
+        views_id: str | None = None,
+        priority: int | None = None,
     ) -> JobRecord:
-        return await self._run(calls.submit_job(mesh_id, task, spectra, params))
+        return await self._run(calls.submit_job(mesh_id, task, spectra, params, views_id, priority))
 
     async def fit_uv(
-        self, mesh_id: str, spectra: dict[str, Any] | None = None, **params: Any
+        self,
+        mesh_id: str,
+        spectra: dict[str, Any] | None = None,
+        priority: int | None = None,
+        **params: Any,
     ) -> JobRecord:
-        return await self.submit_job(mesh_id, "fit_uv", spectra, params)
+        return await self.submit_job(mesh_id, "fit_uv", spectra, params, priority=priority)
 
     async def fit_multiview(
-        self, mesh_id: str, spectra: dict[str, Any] | None = None, **params: Any
+        self,
+        mesh_id: str,
+        views_id: str,
+        spectra: dict[str, Any] | None = None,
+        priority: int | None = None,
+        **params: Any,
     ) -> JobRecord:
-        return await self.submit_job(mesh_id, "fit_multiview", spectra, params)
+        return await self.submit_job(
+            mesh_id, "fit_multiview", spectra, params, views_id=views_id, priority=priority
+        )
+
+    async def upload_views(self, path: str | Path) -> ViewsRecord:
+        return await self._run(calls.upload_views(path))
 
     async def get_job(self, job_id: str) -> JobRecord:
         return await self._run(calls.get_job(job_id))

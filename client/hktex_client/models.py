@@ -4,17 +4,18 @@ These mirror the service's response schemas (``hktex_server.schemas``) but are d
 again on purpose: the client must install without the server (no FastAPI, torch, scipy), so it
 cannot import them. Every model ignores unknown fields, so a newer server that adds a field
 does not break an older client; a field the client needs and the server lacks is a test
-failure in ``tests/test_client.py``, which runs both against each other.
+failure in ``tests/test_client.py``, which compares both field sets. Times are Unix epoch
+seconds (UTC), as the service sends them.
 """
 
 from __future__ import annotations
 
-from datetime import datetime
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 JobState = Literal["queued", "running", "cancelling", "succeeded", "failed", "cancelled"]
+SpectraState = Literal["missing", "queued", "running", "ready", "failed"]
 FINAL_STATES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 
@@ -26,57 +27,53 @@ class MeshRecord(_Record):
     """An uploaded, validated mesh (content-addressed: the same bytes give the same id)."""
 
     id: str
-    name: str | None = None
-    n_vertices: int | None = None
-    n_faces: int | None = None
+    name: str = ""
+    n_vertices: int = 0
+    n_faces: int = 0
     has_texture: bool = False
-    has_uvs: bool | None = None
-    content_hash: str | None = None
-    size_bytes: int | None = None
+    content_hash: str = ""
+    bytes: int = 0
     checks: dict[str, Any] = Field(default_factory=dict)
-    created_at: datetime | None = None
-
-
-class SpectralConfigIn(_Record):
-    """A spectral config as the API takes it; every field optional (server defaults apply)."""
-
-    angles: int | None = None
-    anisotropies: list[float] | None = None
-    k: int | None = None
-    k_iso: int | None = None
+    created_at: float | None = None
 
 
 class SpectraRecord(_Record):
-    """A spectra artefact for (mesh, config): ``ready`` when cached, else computed by a job."""
+    """Spectra shared per (mesh content, config): ``ready`` when cached, else a job computes."""
 
     id: str
-    mesh_id: str | None = None
-    state: str
+    state: SpectraState
+    mesh_hash: str = ""
     config: dict[str, Any] = Field(default_factory=dict)
+    config_hash: str = ""
     job_id: str | None = None
-    summary: dict[str, Any] = Field(default_factory=dict)
     error: str | None = None
-    created_at: datetime | None = None
+    summary: dict[str, Any] | None = None
+    created_at: float | None = None
+    updated_at: float | None = None
 
     @property
     def ready(self) -> bool:
-        return self.state in ("ready", "succeeded")
+        return self.state == "ready"
 
 
 class JobProgress(_Record):
-    """Where a job is: ``step`` of ``total`` with the latest loss and metrics."""
+    """Where a job is: ``step`` of ``total`` with the latest loss, kernel count and metrics."""
 
     step: int = 0
     total: int = 0
     loss: float | None = None
-    kernels: int | None = None
-    metrics: dict[str, Any] = Field(default_factory=dict)
-    message: str | None = None
-    updated_at: datetime | None = None
+    kernel_count: int | None = None
+    metrics: dict[str, float] = Field(default_factory=dict)
+    updated_at: float | None = None
 
     @property
     def fraction(self) -> float:
         return self.step / self.total if self.total else 0.0
+
+
+class JobResult(_Record):
+    kernelset_id: str | None = None
+    spectra_id: str | None = None
 
 
 class JobRecord(_Record):
@@ -86,42 +83,66 @@ class JobRecord(_Record):
     task: str
     state: JobState
     mesh_id: str | None = None
+    spectra_id: str | None = None
+    views_id: str | None = None
+    priority: int = 0
+    attempts: int = 0
+    max_attempts: int = 1
+    cancel_requested: bool = False
+    device: str | None = None
     progress: JobProgress = Field(default_factory=JobProgress)
     error: str | None = None
-    spectra_id: str | None = None
-    kernelset_id: str | None = None
-    result: dict[str, Any] = Field(default_factory=dict)
-    attempts: int | None = None
-    created_at: datetime | None = None
-    started_at: datetime | None = None
-    finished_at: datetime | None = None
+    result: JobResult = Field(default_factory=JobResult)
+    params: dict[str, Any] = Field(default_factory=dict)
+    created_at: float | None = None
+    started_at: float | None = None
+    finished_at: float | None = None
 
     @property
     def done(self) -> bool:
         return self.state in FINAL_STATES
+
+    @property
+    def kernelset_id(self) -> str | None:
+        return self.result.kernelset_id
 
 
 class KernelSetRecord(_Record):
     """A fitted kernel set: its provenance, size and metrics."""
 
     id: str
+    job_id: str | None = None
     mesh_id: str | None = None
     spectra_id: str | None = None
-    job_id: str | None = None
-    n_kernels: int | None = None
-    size_bytes: int | None = None
+    n_kernels: int = 0
+    bytes: int = 0
     metrics: dict[str, Any] = Field(default_factory=dict)
     manifest: dict[str, Any] = Field(default_factory=dict)
-    created_at: datetime | None = None
+    created_at: float | None = None
+
+
+class ViewsRecord(_Record):
+    """An uploaded multi-view dataset (images + cameras) for ``fit_multiview``."""
+
+    id: str
+    n_files: int = 0
+    bytes: int = 0
+    created_at: float | None = None
 
 
 class Health(_Record):
     status: str
 
 
+class QueueDepth(_Record):
+    queued: int = 0
+    running: int = 0
+
+
 class Info(_Record):
-    version: str | None = None
-    devices: list[Any] = Field(default_factory=list)
-    workers: int | None = None
-    queue_depth: int | None = None
-    limits: dict[str, Any] = Field(default_factory=dict)
+    version: str = ""
+    devices: list[str] = Field(default_factory=list)
+    workers: int = 0
+    queue: QueueDepth = Field(default_factory=QueueDepth)
+    owner: str = ""
+    limits: dict[str, int] = Field(default_factory=dict)
