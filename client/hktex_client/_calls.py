@@ -207,6 +207,26 @@ def _colors_from(response: httpx.Response) -> np.ndarray:
     return np.asarray(colors, dtype=np.float32).reshape(-1, 3)
 
 
+def query_size(face_ids: Any, barycentrics: Any, points: Any) -> int:
+    """Number of query rows; raises ValueError on an ambiguous or mismatched query."""
+    by_faces = face_ids is not None or barycentrics is not None
+    if by_faces == (points is not None):
+        raise ValueError("give either face_ids and barycentrics, or points")
+    if by_faces:
+        if face_ids is None or barycentrics is None:
+            raise ValueError("face_ids and barycentrics go together")
+        f, b = np.asarray(face_ids), np.asarray(barycentrics)
+        if f.ndim != 1 or b.shape != (f.shape[0], 3):
+            raise ValueError(
+                f"face_ids must be (P,) and barycentrics (P, 3); got {f.shape} and {b.shape}"
+            )
+        return int(f.shape[0])
+    p = np.asarray(points)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must be (P, 3); got {p.shape}")
+    return int(p.shape[0])
+
+
 def albedo(
     kernelset_id: str,
     face_ids: Any = None,

@@ -68,10 +68,6 @@ def _slice_query(kwargs: dict[str, Any], sl: slice) -> dict[str, Any]:
     return {k: (None if v is None else np.asarray(v)[sl]) for k, v in kwargs.items()}
 
 
-def _query_len(face_ids: Any, points: Any) -> int:
-    return len(np.asarray(points if points is not None else face_ids))
-
-
 class Client:
     """Synchronous HKTex client; use as a context manager or call ``close()``.
 
@@ -290,7 +286,7 @@ class Client:
         query = {"face_ids": face_ids, "barycentrics": barycentrics, "points": points}
         parts = [
             self._run(calls.albedo(kernelset_id, binary=binary, **_slice_query(query, sl)))
-            for sl in _chunks(_query_len(face_ids, points), chunk_size)
+            for sl in _chunks(calls.query_size(face_ids, barycentrics, points), chunk_size)
         ]
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
@@ -497,7 +493,7 @@ class AsyncClient:
         query = {"face_ids": face_ids, "barycentrics": barycentrics, "points": points}
         parts = [
             await self._run(calls.albedo(kernelset_id, binary=binary, **_slice_query(query, sl)))
-            for sl in _chunks(_query_len(face_ids, points), chunk_size)
+            for sl in _chunks(calls.query_size(face_ids, barycentrics, points), chunk_size)
         ]
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
