@@ -1,0 +1,203 @@
+"""Differentiable interpolation of the spectral grid (ALGORITHM.md section 2).
+
+A kernel with a continuous angle ``theta`` and anisotropy coordinate ``s = ln(1 + eta)`` uses
+the spectrum bilinearly interpolated from the four surrounding grid nodes; a surface point
+``(face, barycentrics)`` reads eigenfunctions as the barycentric blend of its three vertices.
+Gradients reach ``theta``, ``s`` and the barycentrics; the eigen data are constants.
+
+Why a hand-written autograd function (:class:`_InterpolatedRows`): the eigenfunctions at
+``U`` points for per-point grid nodes need the gathered block ``(U, 3 vertices, 4 nodes, K)``.
+Plain autograd would keep that block alive until backward (hundreds of MB for the tens of
+thousands of kernel centres a fit touches per step); the function below gathers it chunk by
+chunk in forward and again in backward, so memory stays bounded by the chunk size.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+
+from hktex_engine.spectra import Spectra
+
+#: Rows per chunk when gathering eigenfunction blocks; bounds peak memory of one gather to
+#: about ``CHUNK_ROWS * 12 * K * itemsize`` bytes.
+CHUNK_ROWS = 4096
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """CUDA when present and not asked otherwise; the CPU always works."""
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+def _chunks(n: int, size: int) -> Iterator[slice]:
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def bilinear_nodes(
+    grid_theta: torch.Tensor, grid_s: torch.Tensor, theta: torch.Tensor, s: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Four surrounding grid nodes and their bilinear weights for each ``(theta, s)``.
+
+    Returns ``nodes`` (P, 4) long (node ``g = a * S + b``, angle-major, corners ordered
+    (a0,b0), (a0,b1), (a1,b0), (a1,b1)) and ``weights`` (P, 4) summing to one. Coordinates
+    outside the grid are clamped onto it, so the gradient there is zero (the grid holds no
+    information beyond its ends). A one-node axis gets weight 1 on that node.
+    """
+    a0, ta = _axis_cell(grid_theta, theta)
+    b0, tb = _axis_cell(grid_s, s)
+    a1 = torch.clamp(a0 + 1, max=grid_theta.shape[0] - 1)
+    b1 = torch.clamp(b0 + 1, max=grid_s.shape[0] - 1)
+    n_s = grid_s.shape[0]
+    nodes = torch.stack([a0 * n_s + b0, a0 * n_s + b1, a1 * n_s + b0, a1 * n_s + b1], dim=-1)
+    weights = torch.stack([(1 - ta) * (1 - tb), (1 - ta) * tb, ta * (1 - tb), ta * tb], dim=-1)
+    return nodes, weights
+
+
+def _axis_cell(grid: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cell index ``i`` with ``grid[i] <= x <= grid[i+1]`` and the fraction ``t`` in [0, 1]."""
+    if grid.shape[0] == 1:
+        return torch.zeros_like(x, dtype=torch.long), torch.zeros_like(x)
+    xc = torch.clamp(x, min=float(grid[0]), max=float(grid[-1]))
+    i = torch.searchsorted(grid, xc.detach().contiguous(), right=True) - 1
+    i = torch.clamp(i, 0, grid.shape[0] - 2)
+    lo, hi = grid[i], grid[i + 1]
+    return i, (xc - lo) / (hi - lo)
+
+
+class _InterpolatedRows(torch.autograd.Function):
+    """``out[u] = sum_v b[u,v] sum_c w[u,c] E[vert[u,v], node[u,c], :]`` with chunked gathers.
+
+    Backward recomputes the gathered rows per chunk instead of saving them; see module doc.
+    """
+
+    @staticmethod
+    def forward(ctx, evecs, verts, bary, nodes, weights, out_dtype):  # type: ignore[override]
+        ctx.save_for_backward(evecs, verts, bary, nodes, weights)
+        ctx.out_dtype = out_dtype
+        out = torch.empty((verts.shape[0], evecs.shape[2]), dtype=out_dtype, device=bary.device)
+        for sl in _chunks(verts.shape[0], CHUNK_ROWS):
+            rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3, 4, K)
+            coeff = bary[sl, :, None] * weights[sl, None, :]  # (c, 3, 4)
+            out[sl] = torch.einsum("uvck,uvc->uk", rows, coeff.to(out_dtype))
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        evecs, verts, bary, nodes, weights = ctx.saved_tensors
+        need_b, need_w = ctx.needs_input_grad[2], ctx.needs_input_grad[4]
+        grad_b = torch.zeros_like(bary) if need_b else None
+        grad_w = torch.zeros_like(weights) if need_w else None
+        if need_b or need_w:
+            for sl in _chunks(verts.shape[0], CHUNK_ROWS):
+                rows = _gather_rows(evecs, verts[sl], nodes[sl], ctx.out_dtype)
+                t = torch.einsum("uvck,uk->uvc", rows, grad_out[sl])  # (c, 3, 4)
+                if need_b:
+                    grad_b[sl] = torch.einsum("uvc,uc->uv", t, weights[sl].to(t.dtype))
+                if need_w:
+                    grad_w[sl] = torch.einsum("uvc,uv->uc", t, bary[sl].to(t.dtype))
+        return None, None, grad_b, None, grad_w, None
+
+
+def _gather_rows(
+    evecs: torch.Tensor, verts: torch.Tensor, nodes: torch.Tensor, dtype: torch.dtype
+) -> torch.Tensor:
+    """``evecs[verts[u, v], nodes[u, c], :]`` as a (U, 3, 4, K) block in ``dtype``."""
+    return evecs[verts[:, :, None], nodes[:, None, :]].to(dtype)
+
+
+class SpectralField:
+    """The aligned spectral grid of one mesh as device tensors, with differentiable lookups.
+
+    ``dtype`` is the compute precision. Eigenvectors stored as float16 in the spectra stay
+    float16 on the device (half the memory) and are up-cast row by row when gathered.
+    """
+
+    def __init__(
+        self,
+        spectra: Spectra,
+        device: str | torch.device | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        self.device = resolve_device(device)
+        self.dtype = dtype
+        self.spectra = spectra
+        evecs = np.asarray(spectra.evecs)
+        store = torch.float16 if evecs.dtype == np.float16 else dtype
+        self.evecs = torch.as_tensor(np.ascontiguousarray(evecs)).to(self.device, store)
+        self.evals = self._t(spectra.evals)  # (G, K)
+        self.grid_theta = self._t(spectra.grid_theta)
+        self.grid_s = self._t(spectra.grid_s)
+        self.faces = torch.as_tensor(np.asarray(spectra.faces, dtype=np.int64), device=self.device)
+        self.vertices = self._t(spectra.vertices)
+        self.embedding = self._t(spectra.embedding)  # (n, K_iso - 1)
+        n_nodes = self.grid_theta.shape[0] * self.grid_s.shape[0]
+        if self.evecs.shape[1] != n_nodes or self.evals.shape != (n_nodes, self.evecs.shape[2]):
+            raise ValueError(
+                f"spectra grid is inconsistent: evecs {tuple(self.evecs.shape)}, evals "
+                f"{tuple(self.evals.shape)}, {n_nodes} grid nodes"
+            )
+
+    def _t(self, array: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(array, dtype=np.float64)).to(self.device, self.dtype)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.evecs.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    @property
+    def n_nodes(self) -> int:
+        return int(self.evecs.shape[1])
+
+    @property
+    def k(self) -> int:
+        return int(self.evecs.shape[2])
+
+    def nodes(self, theta: torch.Tensor, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Bilinear grid nodes (P, 4) and weights (P, 4) for ``(theta, s)``."""
+        return bilinear_nodes(self.grid_theta, self.grid_s, theta, s)
+
+    def eigenvalues(self, theta: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """``lambda_k = sum_c w_c lambda_k^c`` at each ``(theta, s)``: (P, K)."""
+        nodes, weights = self.nodes(theta, s)
+        return torch.einsum("pck,pc->pk", self.evals[nodes], weights)
+
+    def eigenfunctions(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, theta: torch.Tensor, s: torch.Tensor
+    ) -> torch.Tensor:
+        """``phi_k(x)`` at surface points for per-point ``(theta, s)``: (P, K).
+
+        Memory stays bounded by :data:`CHUNK_ROWS` in forward and backward.
+        """
+        nodes, weights = self.nodes(theta, s)
+        verts = self.faces[face_ids]
+        return _InterpolatedRows.apply(self.evecs, verts, bary, nodes, weights, self.dtype)
+
+    def node_values(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """Eigenfunctions at surface points on every grid node: (P, G, K).
+
+        This is the query side of kernel evaluation: a point's three vertex rows are contiguous
+        in the vertex-major layout, so gathering all nodes is three contiguous reads per point
+        and serves every candidate kernel, whatever its angle and anisotropy.
+        """
+        verts = self.faces[face_ids]
+        b = bary.to(self.dtype)
+        out = self.evecs[verts[:, 0]].to(self.dtype) * b[:, 0, None, None]
+        out = out + self.evecs[verts[:, 1]].to(self.dtype) * b[:, 1, None, None]
+        return out + self.evecs[verts[:, 2]].to(self.dtype) * b[:, 2, None, None]
+
+    def embedding_at(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """Biharmonic embedding interpolated barycentrically: (P, K_iso - 1)."""
+        return torch.einsum("pvd,pv->pd", self.embedding[self.faces[face_ids]], bary.to(self.dtype))
+
+    def positions(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """3-D points in the normalised frame: (P, 3)."""
+        return torch.einsum("pvd,pv->pd", self.vertices[self.faces[face_ids]], bary.to(self.dtype))

@@ -1,0 +1,479 @@
+"""Kernel sets and their evaluation (ALGORITHM.md sections 4 and 5).
+
+:class:`KernelSet` is the plain numpy record a ``.hkt`` file holds. :class:`HeatKernelModel`
+holds the same kernels as torch parameters on a device and evaluates albedo at surface points:
+
+    h_j(y) = sum_k exp(-t lambda_k) phi_k(c_j) phi_k(y)      spectrum at (theta_j, s_j)
+    w_j(y) = exp(-d_B(c_j, y)^2 / (2 sigma_B^2))
+    r_j(y) = h_j(y) w_j(y) / h_j(c_j)
+    rho_j(y) = S(r_j(y); eps_j, k_j)
+    albedo(y) = clamp(a_0 + sum_{top K_c} rho_j a_j / max(1, sum rho_j), 0, 1)
+
+Evaluation for P points and K_s candidates each: the point's eigenfunctions on every grid node
+``Phi_y`` (P, G, K) come from three contiguous vertex rows; each kernel's spectral coefficients
+``coef_j = exp(-t lambda^j) * phi^j(c_j)`` (K,) are per kernel; one batched matmul gives
+``coef_j . Phi_y[g]`` for all G nodes and the four bilinear nodes of kernel j are picked from
+it. That trades G/4 times more multiply-adds than strictly needed for dense BLAS instead of a
+(P, K_s, 4, K) gather, which measured slower (docs/kernels.md, "Decisions").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import nn
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.errors import KernelSetError
+from hktex_engine.interpolation import SpectralField
+from hktex_engine.knn import CandidateSearch
+
+THETA_RANGE = (0.0, math.pi)
+ETA_RANGE = (1.0, 200.0)
+#: The threshold's range is [0.3, 1); projection keeps it a hair below 1.
+THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
+SHARPNESS_RANGE = (10.0, 200.0)
+COLOR_RANGE = (-1.0, 1.0)
+BASE_RANGE = (0.0, 1.0)
+#: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
+BARY_TOL = 1e-3
+
+
+@dataclass
+class KernelSet:
+    """A kernel set as stored in a ``.hkt`` file (INTERFACES.md section 2), numpy arrays."""
+
+    face_ids: np.ndarray  # (N,) int64, faces of the normalised mesh
+    barycentrics: np.ndarray  # (N, 3), rows sum to one
+    theta: np.ndarray  # (N,) in [0, pi]
+    eta: np.ndarray  # (N,) in [1, 200]
+    threshold: np.ndarray  # (N,) in [0.3, 1)
+    sharpness: np.ndarray  # (N,) in [10, 200]
+    colors: np.ndarray  # (N, 3) residuals in [-1, 1]
+    base_color: np.ndarray  # (3,) in [0, 1]
+    kernel_config: KernelConfig = field(default_factory=KernelConfig)
+    mesh_hash: str = ""
+    config_hash: str = ""
+    color_space: str = "srgb"
+    fitting: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(np.asarray(self.face_ids).shape[0])
+
+    def validate(self, n_faces: int | None = None) -> None:
+        """Raise :class:`KernelSetError` unless shapes, ranges and finiteness all hold."""
+        n = len(self)
+        shapes = {
+            "face_ids": (n,),
+            "barycentrics": (n, 3),
+            "theta": (n,),
+            "eta": (n,),
+            "threshold": (n,),
+            "sharpness": (n,),
+            "colors": (n, 3),
+            "base_color": (3,),
+        }
+        for name, shape in shapes.items():
+            arr = np.asarray(getattr(self, name))
+            if arr.shape != shape:
+                raise KernelSetError(f"member {name!r} has shape {arr.shape}, expected {shape}")
+            if arr.dtype.kind not in "biuf":
+                raise KernelSetError(f"member {name!r} has non-numeric dtype {arr.dtype}")
+            if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+                raise KernelSetError(f"member {name!r} contains NaN or infinity")
+        if n == 0:
+            raise KernelSetError("the kernel set is empty")
+        if np.asarray(self.face_ids).dtype.kind == "f":
+            raise KernelSetError("member 'face_ids' must be integers")
+        fid = np.asarray(self.face_ids)
+        if fid.min() < 0 or (n_faces is not None and fid.max() >= n_faces):
+            raise KernelSetError(
+                f"face ids out of range [0, {n_faces if n_faces is not None else 'inf'})"
+            )
+        bary = np.asarray(self.barycentrics, dtype=np.float64)
+        if bary.min() < -BARY_TOL or np.abs(bary.sum(axis=1) - 1).max() > BARY_TOL:
+            raise KernelSetError("barycentrics must be non-negative rows summing to one")
+        eps = 1e-3  # float16 storage rounds the range ends by less than this (relative)
+        _check_range("theta", self.theta, THETA_RANGE[0] - eps, THETA_RANGE[1] + eps)
+        _check_range("eta", self.eta, ETA_RANGE[0] * (1 - eps), ETA_RANGE[1] * (1 + eps))
+        _check_range("threshold", self.threshold, THRESHOLD_RANGE[0] - eps, 1.0 - 1e-7)
+        _check_range(
+            "sharpness",
+            self.sharpness,
+            SHARPNESS_RANGE[0] * (1 - eps),
+            SHARPNESS_RANGE[1] * (1 + eps),
+        )
+        _check_range("colors", self.colors, COLOR_RANGE[0] - eps, COLOR_RANGE[1] + eps)
+        _check_range("base_color", self.base_color, BASE_RANGE[0] - eps, BASE_RANGE[1] + eps)
+
+
+def _check_range(name: str, values: np.ndarray, lo: float, hi: float) -> None:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size and (arr.min() < lo or arr.max() > hi):
+        raise KernelSetError(
+            f"member {name!r} out of range: [{arr.min():.6g}, {arr.max():.6g}] not in "
+            f"[{lo:.6g}, {hi:.6g}]"
+        )
+
+
+def soft_step(x: torch.Tensor, eps: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """``S(x; eps, k)``: a sigmoid rescaled so S(0) = 0 and S(1) = 1, clamped to [0, 1]."""
+    low = torch.sigmoid(-k * eps)
+    high = torch.sigmoid(k * (1 - eps))
+    return torch.clamp((torch.sigmoid(k * (x - eps)) - low) / (high - low), 0.0, 1.0)
+
+
+def barycentric_gradients(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Gradient of each corner's barycentric coordinate in its face plane: (m, 3, 3).
+
+    ``grad b_i = n x (p_{i+2} - p_{i+1}) / (2 A)``. A loss gradient over barycentrics
+    ``g_b`` becomes the 3-D tangent gradient ``sum_i g_b[i] grad b_i``; the part of ``g_b``
+    along (1, 1, 1) (which would leave the surface) drops out because the three sum to zero.
+    """
+    p = vertices[faces]  # (m, 3, 3)
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    double_area = torch.linalg.norm(cross, dim=1, keepdim=True)
+    normal = cross / double_area
+    edges = torch.roll(p, shifts=-2, dims=1) - torch.roll(p, shifts=-1, dims=1)  # p_{i+2}-p_{i+1}
+    return torch.linalg.cross(normal[:, None, :].expand_as(edges), edges) / double_area[:, None, :]
+
+
+class HeatKernelModel(nn.Module):
+    """Kernel parameters on a device; albedo at surface points (ALGORITHM.md 4-5).
+
+    Parameters (``nn.Parameter``, rows = kernels): ``theta``, ``s`` (= ln(1 + eta), the grid
+    coordinate; our choice of parameterisation, so Adam steps are relative in eta),
+    ``threshold``, ``sharpness``, ``colors``, ``bary`` (centre barycentrics inside the buffer
+    ``face_ids``) and ``base_color``. :meth:`kernel_parameters` names them after the
+    ``FitParams.lr_*`` groups. Centres move only by geodesic steps: the optimiser reads
+    :meth:`centre_tangent_grad`, traces, and writes back with :meth:`set_centres`.
+
+    Density control changes the kernel count in place with :meth:`select` and :meth:`append`;
+    the Parameter objects keep their identity (their ``.data`` is replaced), so an optimiser
+    built on them stays valid once its per-parameter state is re-indexed the same way.
+
+    Cached state (per-kernel spectral coefficients for no-grad queries, the KNN index over centre
+    embeddings) is rebuilt automatically when any parameter changed in place since it was built
+    (tracked through tensor version counters) and by :meth:`refresh`.
+    """
+
+    def __init__(
+        self,
+        field: SpectralField,
+        face_ids: torch.Tensor | np.ndarray,
+        bary: torch.Tensor | np.ndarray,
+        theta: torch.Tensor | np.ndarray,
+        eta: torch.Tensor | np.ndarray,
+        threshold: torch.Tensor | np.ndarray,
+        sharpness: torch.Tensor | np.ndarray,
+        colors: torch.Tensor | np.ndarray,
+        base_color: torch.Tensor | np.ndarray,
+        config: KernelConfig | None = None,
+        knn_backend: str = "auto",
+    ) -> None:
+        super().__init__()
+        self.field = field
+        self.config = config or KernelConfig()
+        self.knn_backend = knn_backend
+        dev, dt = field.device, field.dtype
+        self.register_buffer("face_ids", _long(face_ids, dev))
+        self.bary = nn.Parameter(_float(bary, dev, dt))
+        self.theta = nn.Parameter(_float(theta, dev, dt))
+        self.s = nn.Parameter(torch.log1p(_float(eta, dev, dt)))
+        self.threshold = nn.Parameter(_float(threshold, dev, dt))
+        self.sharpness = nn.Parameter(_float(sharpness, dev, dt))
+        self.colors = nn.Parameter(_float(colors, dev, dt))
+        self.base_color = nn.Parameter(_float(base_color, dev, dt))
+        self._check_shapes()
+        self._generation = 0
+        self._cache_key: tuple | None = None
+        self._knn_key: tuple | None = None
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_kernelset(
+        cls, kernelset: KernelSet, field: SpectralField, knn_backend: str = "auto"
+    ) -> HeatKernelModel:
+        """A model of ``kernelset`` on ``field``'s device; refuses another mesh or grid."""
+        spectra = field.spectra
+        if kernelset.mesh_hash and kernelset.mesh_hash != spectra.mesh_hash:
+            raise KernelSetError("the kernel set was fitted on another mesh")
+        if kernelset.config_hash and kernelset.config_hash != spectra.config_hash:
+            raise KernelSetError("the kernel set was fitted with another spectral config")
+        kernelset.validate(n_faces=field.n_faces)
+        bary = np.asarray(kernelset.barycentrics, dtype=np.float64)
+        bary = np.clip(bary, 0.0, None)
+        bary = bary / bary.sum(axis=1, keepdims=True)  # undo float16 rounding of the rows
+        return cls(
+            field,
+            np.asarray(kernelset.face_ids, dtype=np.int64),
+            bary,
+            np.asarray(kernelset.theta, dtype=np.float64),
+            np.asarray(kernelset.eta, dtype=np.float64),
+            np.asarray(kernelset.threshold, dtype=np.float64),
+            np.asarray(kernelset.sharpness, dtype=np.float64),
+            np.asarray(kernelset.colors, dtype=np.float64),
+            np.asarray(kernelset.base_color, dtype=np.float64),
+            config=kernelset.kernel_config,
+            knn_backend=knn_backend,
+        )
+
+    def to_kernelset(
+        self, color_space: str = "srgb", fitting: dict | None = None, extras: dict | None = None
+    ) -> KernelSet:
+        """The parameters as a numpy :class:`KernelSet` tagged with this mesh and grid."""
+
+        def np_(t: torch.Tensor) -> np.ndarray:
+            return t.detach().cpu().numpy()
+
+        return KernelSet(
+            face_ids=np_(self.face_ids).astype(np.int64),
+            barycentrics=np_(self.bary).astype(np.float64),
+            theta=np_(self.theta).astype(np.float64),
+            eta=np_(torch.expm1(self.s)).astype(np.float64),
+            threshold=np_(self.threshold).astype(np.float64),
+            sharpness=np_(self.sharpness).astype(np.float64),
+            colors=np_(self.colors).astype(np.float64),
+            base_color=np_(self.base_color).astype(np.float64),
+            kernel_config=self.config,
+            mesh_hash=self.field.spectra.mesh_hash,
+            config_hash=self.field.spectra.config_hash,
+            color_space=color_space,
+            fitting=dict(fitting or {}),
+            extras=dict(extras or {}),
+        )
+
+    def _check_shapes(self) -> None:
+        n = self.face_ids.shape[0]
+        expect = {
+            "bary": (n, 3),
+            "theta": (n,),
+            "s": (n,),
+            "threshold": (n,),
+            "sharpness": (n,),
+            "colors": (n, 3),
+            "base_color": (3,),
+        }
+        for name, shape in expect.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise KernelSetError(f"kernel parameter {name!r} has shape {got}, expected {shape}")
+        if n and (self.face_ids.min() < 0 or self.face_ids.max() >= self.field.n_faces):
+            raise KernelSetError("kernel centre face ids out of range")
+
+    # ----------------------------------------------------------------- parameters
+    def __len__(self) -> int:
+        return int(self.face_ids.shape[0])
+
+    @property
+    def eta(self) -> torch.Tensor:
+        return torch.expm1(self.s)
+
+    def kernel_parameters(self) -> dict[str, nn.Parameter]:
+        """Parameters keyed by their ``FitParams.lr_<name>`` group."""
+        return {
+            "colors": self.colors,
+            "theta": self.theta,
+            "eta": self.s,
+            "threshold": self.threshold,
+            "sharpness": self.sharpness,
+            "base": self.base_color,
+            "centers": self.bary,
+        }
+
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Clamp every attribute into its range after an optimiser step."""
+        self.theta.clamp_(*THETA_RANGE)
+        self.s.clamp_(math.log1p(ETA_RANGE[0]), math.log1p(ETA_RANGE[1]))
+        self.threshold.clamp_(*THRESHOLD_RANGE)
+        self.sharpness.clamp_(*SHARPNESS_RANGE)
+        self.colors.clamp_(*COLOR_RANGE)
+        self.base_color.clamp_(*BASE_RANGE)
+        self.bary.clamp_(min=0.0)
+        self.bary.div_(self.bary.sum(dim=1, keepdim=True))
+
+    def centre_positions(self) -> torch.Tensor:
+        """Centres in the normalised frame (N, 3), differentiable through ``bary``."""
+        return self.field.positions(self.face_ids, self.bary)
+
+    def centre_tangent_grad(self) -> torch.Tensor:
+        """d loss / d centre position, in each centre's face plane (N, 3), from ``bary.grad``."""
+        if self.bary.grad is None:
+            return torch.zeros_like(self.bary)
+        grads = barycentric_gradients(self.field.vertices, self.field.faces[self.face_ids])
+        return torch.einsum("nv,nvd->nd", self.bary.grad, grads)
+
+    @torch.no_grad()
+    def set_centres(self, face_ids: torch.Tensor, bary: torch.Tensor) -> None:
+        """Move centres (after a geodesic step); the caches follow on next use."""
+        self.face_ids = _long(face_ids, self.field.device)
+        self.bary.data = _float(bary, self.field.device, self.field.dtype)
+        self._generation += 1
+        self._check_shapes()
+
+    @torch.no_grad()
+    def select(self, indices: torch.Tensor | np.ndarray) -> HeatKernelModel:
+        """Keep only the kernels at ``indices`` (in that order; repeats clone), in place."""
+        idx = _long(indices, self.field.device)
+        self.face_ids = self.face_ids[idx]
+        for p in self._row_params():
+            p.data = p.data[idx]
+            p.grad = None
+        self._generation += 1
+        self._check_shapes()
+        return self
+
+    @torch.no_grad()
+    def append(
+        self,
+        face_ids: torch.Tensor | np.ndarray,
+        bary: torch.Tensor | np.ndarray,
+        theta: torch.Tensor | np.ndarray,
+        eta: torch.Tensor | np.ndarray,
+        threshold: torch.Tensor | np.ndarray,
+        sharpness: torch.Tensor | np.ndarray,
+        colors: torch.Tensor | np.ndarray,
+    ) -> HeatKernelModel:
+        """Add kernels at the end (``eta`` in natural units), in place."""
+        dev, dt = self.field.device, self.field.dtype
+        self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
+        new = [bary, theta, torch.log1p(_float(eta, dev, dt)), threshold, sharpness, colors]
+        for p, rows in zip(self._row_params(), new, strict=True):
+            p.data = torch.cat([p.data, _float(rows, dev, dt)])
+            p.grad = None
+        self._generation += 1
+        self._check_shapes()
+        return self
+
+    def _row_params(self) -> list[nn.Parameter]:
+        return [self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors]
+
+    # ----------------------------------------------------------------- caches
+    def _version_key(self, params: list[torch.Tensor]) -> tuple:
+        # In-place optimiser steps bump a tensor's version; set_centres/select/append bump the
+        # generation (they replace tensors, whose fresh version counters could repeat).
+        return (self._generation, self.face_ids._version) + tuple(p._version for p in params)
+
+    def refresh(self) -> None:
+        """Rebuild the centre responses and the KNN index now (after centres moved)."""
+        self._cache_key = None
+        self._knn_key = None
+        self._ensure_cache()
+        self._ensure_knn()
+
+    @torch.no_grad()
+    def _ensure_cache(self) -> None:
+        key = self._version_key([self.bary, self.theta, self.s])
+        if key == self._cache_key:
+            return
+        self._terms = self._spectral_terms(torch.arange(len(self), device=self.field.device))
+        self._cache_key = key
+
+    @torch.no_grad()
+    def _ensure_knn(self) -> None:
+        key = self._version_key([self.bary])
+        if key == self._knn_key:
+            return
+        self._centre_emb = self.field.embedding_at(self.face_ids, self.bary)
+        self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
+        self._knn_key = key
+
+    def _spectral_terms(self, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Per-kernel terms for kernels ``idx``.
+
+        ``coef = exp(-t lambda) phi(c)`` (U, K), ``h(c) = coef . phi(c)`` (U,), the bilinear
+        nodes and weights (U, 4) and the centre embeddings (U, D).
+        """
+        theta, s = self.theta[idx], self.s[idx]
+        face_ids, bary = self.face_ids[idx], self.bary[idx]
+        phi_c = self.field.eigenfunctions(face_ids, bary, theta, s)
+        lam = self.field.eigenvalues(theta, s)
+        coef = torch.exp(-self.config.diffusion_time * lam) * phi_c
+        norm = (coef * phi_c).sum(dim=1)
+        nodes, weights = self.field.nodes(theta, s)
+        return coef, norm, nodes, weights, self.field.embedding_at(face_ids, bary)
+
+    # ----------------------------------------------------------------- evaluation
+    def albedo(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Albedo (P, 3) at surface points from the ``K_c`` strongest of ``K_s`` candidates.
+
+        ``aux`` holds ``indices`` (P, K_c) global kernel ids and ``rho`` (P, K_c).
+        """
+        face_ids = _long(face_ids, self.field.device)
+        bary = _float(bary, self.field.device, self.field.dtype)
+        self._ensure_knn()
+        k_s = min(self.config.k_search, len(self))
+        cand = self._knn.search(self.field.embedding_at(face_ids, bary), k_s)
+        return self._blend(face_ids, bary, cand, return_aux)
+
+    def albedo_bruteforce(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Albedo with every kernel a candidate (no KNN); for tests and tiny sets."""
+        face_ids = _long(face_ids, self.field.device)
+        bary = _float(bary, self.field.device, self.field.dtype)
+        return self._blend(face_ids, bary, None, return_aux)
+
+    def responses(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``rho`` (P, C) of candidate kernels ``cand`` (P, C) (all kernels when None).
+
+        Returns ``(rho, cand)``. Differentiable in every kernel parameter when grad is enabled;
+        under ``torch.no_grad`` it reuses the cached per-kernel coefficients.
+        """
+        face_ids = _long(face_ids, self.field.device)
+        bary = _float(bary, self.field.device, self.field.dtype)
+        if cand is None:
+            cand = torch.arange(len(self), device=self.field.device).expand(face_ids.shape[0], -1)
+        r = self._ratio(face_ids, bary, cand)
+        return soft_step(r, self.threshold[cand], self.sharpness[cand]), cand
+
+    def _blend(self, face_ids, bary, cand, return_aux):
+        rho, cand = self.responses(face_ids, bary, cand)
+        k_c = min(self.config.k_blend, rho.shape[1])
+        rho_top, pos = torch.topk(rho, k_c, dim=1)
+        kid = cand.gather(1, pos)
+        weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
+        denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
+        out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
+        if return_aux:
+            return out, {"indices": kid, "rho": rho_top}
+        return out
+
+    def _ratio(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor
+    ) -> torch.Tensor:
+        """``r_j(y) = h_j(y) w_j(y) / h_j(c_j)`` for candidates (P, C)."""
+        if torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params()):
+            uniq, local = torch.unique(cand, return_inverse=True)
+            coef, norm, nodes, weights, emb_c = self._spectral_terms(uniq)
+        else:
+            self._ensure_cache()
+            coef, norm, nodes, weights, emb_c = self._terms
+            local = cand
+        phi_y = self.field.node_values(face_ids, bary)  # (P, G, K)
+        # coef_j . Phi_y[g] for every node g, then the kernel's own 4 nodes (see module doc).
+        dots = torch.bmm(coef[local], phi_y.transpose(1, 2))  # (P, C, G)
+        h = (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
+        emb_y = self.field.embedding_at(face_ids, bary)
+        d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
+        decay = torch.exp(-d2 / (2.0 * self.config.sigma_b**2))
+        return h * decay / norm[local]
+
+
+def _long(x: torch.Tensor | np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x).to(device, torch.long)
+
+
+def _float(x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    if torch.is_tensor(x):
+        return x.detach().to(device, dtype).clone()
+    return torch.as_tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)
