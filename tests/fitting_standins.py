@@ -1,0 +1,159 @@
+"""Small stand-ins for the fitting tests: a flat patch, a flat-patch tracer, a toy kernel model.
+
+They are independent of the real kernels/geodesics modules on purpose: the optimiser, density
+control and fit loop are tested on their own logic, with geometry simple enough (a plane) that
+the expected answers are known in closed form.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+
+def flat_patch(n: int = 9, size: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """A square grid of (n x n) vertices in the z = 0 plane, centred at the origin."""
+    t = np.linspace(-size / 2, size / 2, n)
+    x, y = np.meshgrid(t, t, indexing="xy")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[:-1, 1:].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+    )
+    f = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+    return v, f
+
+
+def locate_flat(v: np.ndarray, f: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Face and barycentrics of points in the z = 0 plane (brute force over faces)."""
+    tri = v[f][:, :, :2]  # (m, 3, 2)
+    p = pts[:, None, :2]
+    v0, v1, v2 = tri[None, :, 0], tri[None, :, 1], tri[None, :, 2]
+    d = (v1[..., 0] - v0[..., 0]) * (v2[..., 1] - v0[..., 1]) - (v2[..., 0] - v0[..., 0]) * (
+        v1[..., 1] - v0[..., 1]
+    )
+    b1 = (
+        (p[..., 0] - v0[..., 0]) * (v2[..., 1] - v0[..., 1])
+        - (v2[..., 0] - v0[..., 0]) * (p[..., 1] - v0[..., 1])
+    ) / d
+    b2 = (
+        (v1[..., 0] - v0[..., 0]) * (p[..., 1] - v0[..., 1])
+        - (p[..., 0] - v0[..., 0]) * (v1[..., 1] - v0[..., 1])
+    ) / d
+    b0 = 1 - b1 - b2
+    bary = np.stack([b0, b1, b2], -1)  # (P, m, 3)
+    fid = np.argmax(bary.min(-1), axis=1)
+    out = bary[np.arange(len(pts)), fid]
+    out = np.clip(out, 0, None)
+    return fid, out / out.sum(1, keepdims=True)
+
+
+class FlatTracer:
+    """Exponential map of a plane: straight lines, transport = identity (clamped at the border)."""
+
+    def __init__(self, v: np.ndarray, f: np.ndarray) -> None:
+        self.v, self.f = v, f
+        self.lo, self.hi = v[:, :2].min(0), v[:, :2].max(0)
+        self.calls = 0
+
+    def trace(self, face_ids, bary, vectors):
+        self.calls += 1
+        start = (self.v[self.f[face_ids]] * bary[:, :, None]).sum(1)
+        end = start + vectors
+        end[:, :2] = np.clip(end[:, :2], self.lo, self.hi)
+        fid, b = locate_flat(self.v, self.f, end)
+        return fid, b, vectors.copy()
+
+
+class ToyModel(torch.nn.Module):
+    """Isotropic Gaussian 'kernels' with the attribute names of HeatKernelModel.
+
+    albedo = clamp(a0 + sum_j rho_j a_j / max(1, sum rho), 0, 1) over the top-k responses,
+    rho_j = exp(-|x - c_j|^2 / (2 sigma^2)) scaled by the threshold so that every attribute
+    receives a gradient somewhere (theta/eta/sharpness enter through the width).
+    """
+
+    def __init__(self, v, f, face_ids, bary, colors=None, k_blend: int = 4, sigma: float = 0.25):
+        super().__init__()
+        n = len(face_ids)
+        g = torch.Generator().manual_seed(1)
+        self.register_buffer("V", torch.as_tensor(v, dtype=torch.float64))
+        self.register_buffer("F", torch.as_tensor(f, dtype=torch.long))
+        self.register_buffer("face_ids", torch.as_tensor(face_ids, dtype=torch.long))
+        self.barycentrics = torch.nn.Parameter(torch.as_tensor(bary, dtype=torch.float64))
+        self.theta = torch.nn.Parameter(torch.rand(n, generator=g, dtype=torch.float64) * 3)
+        self.eta = torch.nn.Parameter(1 + 10 * torch.rand(n, generator=g, dtype=torch.float64))
+        self.threshold = torch.nn.Parameter(
+            0.9 + 0.09 * torch.rand(n, generator=g, dtype=torch.float64)
+        )
+        self.sharpness = torch.nn.Parameter(
+            10 + 20 * torch.rand(n, generator=g, dtype=torch.float64)
+        )
+        c = (
+            colors
+            if colors is not None
+            else 0.2 * torch.randn(n, 3, generator=g, dtype=torch.float64)
+        )
+        self.colors = torch.nn.Parameter(torch.as_tensor(c, dtype=torch.float64))
+        self.base_color = torch.nn.Parameter(torch.full((3,), 0.5, dtype=torch.float64))
+        self.k_blend = k_blend
+        self.sigma = sigma
+        self.refreshes = 0
+
+    def centres(self) -> torch.Tensor:
+        return (self.V[self.F[self.face_ids]] * self.barycentrics[:, :, None]).sum(1)
+
+    def albedo(self, face_ids, bary, return_aux=False):
+        x = (self.V[self.F[face_ids]] * bary[:, :, None]).sum(1)
+        d2 = ((x[:, None, :] - self.centres()[None]) ** 2).sum(-1)
+        width = self.sigma * (
+            1 + 0.01 * torch.cos(self.theta) + 0.001 * self.eta + 0.001 * self.sharpness
+        )
+        rho = torch.exp(-d2 / (2 * width[None] ** 2)) * self.threshold[None]
+        k = min(self.k_blend, rho.shape[1])
+        vals, idx = rho.topk(k, dim=1)
+        a = self.base_color + (vals[..., None] * self.colors[idx]).sum(1) / vals.sum(
+            1, keepdim=True
+        ).clamp_min(1)
+        a = a.clamp(0, 1)
+        if return_aux:
+            return a, (idx, vals)
+        return a
+
+    def refresh(self) -> None:
+        self.refreshes += 1
+
+
+def two_colour(points: torch.Tensor) -> torch.Tensor:
+    """Target albedo: red where x < 0, blue elsewhere."""
+    red = torch.tensor([0.9, 0.1, 0.1], dtype=points.dtype)
+    blue = torch.tensor([0.1, 0.2, 0.9], dtype=points.dtype)
+    return torch.where((points[:, :1] < 0), red, blue)
+
+
+class ToyObjective:
+    """Random points on the patch, smooth-L1 against :func:`two_colour`."""
+
+    def __init__(self, v, f, n_points: int = 64) -> None:
+        self.V = torch.as_tensor(v, dtype=torch.float64)
+        self.F = torch.as_tensor(f, dtype=torch.long)
+        self.n = n_points
+
+    def sample(self, step, rng):
+        fid = rng.integers(0, len(self.F), self.n)
+        b = rng.dirichlet(np.ones(3), self.n)
+        return torch.as_tensor(fid), torch.as_tensor(b)
+
+    def loss(self, model, batch):
+        from hktex_engine.fitting import PointStats
+
+        fid, b = batch
+        pred, (idx, rho) = model.albedo(fid, b, return_aux=True)
+        x = (self.V[self.F[fid]] * b[:, :, None]).sum(1)
+        target = two_colour(x)
+        loss = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0)
+        err = (pred - target).abs().mean(1)
+        return loss, PointStats(err.detach(), idx, rho.detach(), fid, b)
