@@ -1,0 +1,365 @@
+"""``hktex demo``: the whole product in one command, through the public client.
+
+It starts the service in-process (uvicorn on a free loopback port, with an embedded job
+supervisor and its own data directory), makes a textured mesh of its own, and then behaves
+exactly like an outside user: upload -> spectra -> UV fit -> albedo queries -> render, all
+through :mod:`hktex_client`. What a user sees at the end is a report (Markdown and HTML, with
+the kernel-set render beside a render of the original UV texture, and the numbers: surface
+PSNR, bytes, kernel count, timings).
+
+Going through HTTP rather than calling the engine directly is the point: the demo is the
+README's first command, so it must exercise the same path an asset tool takes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import html
+import json
+import socket
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hktex_server.settings import Settings
+
+DEFAULT_OUT = Path("hktex-demo")
+
+
+def register_demo_args(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``hktex demo``; defaults finish in a few minutes on 2 CPU cores."""
+    parser.add_argument(
+        "-o",
+        "--out",
+        type=Path,
+        default=DEFAULT_OUT,
+        help="report directory (default ./hktex-demo)",
+    )
+    parser.add_argument(
+        "--data-dir", type=Path, default=None, help="service data directory (default OUT/data)"
+    )
+    parser.add_argument(
+        "--subdivisions",
+        type=int,
+        default=4,
+        help="icosphere subdivisions of the demo blob (4: 2,562 vertices)",
+    )
+    parser.add_argument("--texture-size", type=int, default=256, help="demo texture side")
+    parser.add_argument("--angles", type=int, default=3, help="spectral grid angles")
+    parser.add_argument("--anisotropies", default="1,15,100", help="spectral grid anisotropies")
+    parser.add_argument("--k", type=int, default=48, help="eigenpairs per grid node")
+    parser.add_argument("--k-iso", type=int, default=33, help="isotropic eigenpairs")
+    parser.add_argument("--kernels", type=int, default=400, help="initial kernel count")
+    parser.add_argument("--max-kernels", type=int, default=1500, help="kernel budget")
+    parser.add_argument("--steps", type=int, default=1500, help="fitting steps")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--eval-points",
+        type=int,
+        default=20000,
+        help="surface points for the PSNR (EVALUATION.md uses 60,000)",
+    )
+    parser.add_argument("--render-size", type=int, default=320, help="preview side in pixels")
+    parser.add_argument("--view", default="30,20", help="preview camera 'AZIMUTH,ELEVATION'")
+    parser.add_argument(
+        "--timeout", type=float, default=1800.0, help="give up on a job after this many seconds"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+@dataclass
+class _Timer:
+    """Wall-clock seconds per named stage, in the order they ran (for the report)."""
+
+    stages: dict[str, float] = field(default_factory=dict)
+
+    @contextlib.contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.stages[name] = round(time.perf_counter() - start, 3)
+
+
+def _say(args: argparse.Namespace, message: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(f"[hktex demo] {message}", file=sys.stderr, flush=True)
+
+
+def _loopback_socket() -> socket.socket:
+    """A bound loopback socket on a free port, handed to uvicorn (no pick-then-bind race)."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind(("127.0.0.1", 0))
+    sock.set_inheritable(True)
+    return sock
+
+
+@contextlib.contextmanager
+def running_service(settings: Settings, startup_timeout: float = 60.0) -> Iterator[str]:
+    """Serve the API (and its embedded supervisor) on a free loopback port; yield its URL.
+
+    Used by the demo, the client tests and the service benchmark, so all three run the same
+    real stack: uvicorn, the app's lifespan (migrations, supervisor), worker processes.
+    """
+    import uvicorn
+    from hktex_server.app import create_app
+
+    sock = _loopback_socket()
+    port = sock.getsockname()[1]
+    settings = settings.model_copy(update={"host": "127.0.0.1", "port": port})
+    app = create_app(settings)
+    config = uvicorn.Config(app, log_level="warning", lifespan="on", access_log=False)
+    server = uvicorn.Server(config)
+    thread = threading.Thread(
+        target=server.run, kwargs={"sockets": [sock]}, name="hktex-uvicorn", daemon=True
+    )
+    thread.start()
+    deadline = time.monotonic() + startup_timeout
+    while not server.started:
+        if not thread.is_alive():
+            sock.close()
+            raise RuntimeError("the service failed to start (see the log above)")
+        if time.monotonic() > deadline:
+            server.should_exit = True
+            sock.close()
+            raise RuntimeError(f"the service did not start within {startup_timeout:g} s")
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=60)
+        sock.close()
+
+
+def _make_mesh(args: argparse.Namespace, out: Path) -> tuple[Path, Path]:
+    """The demo's own textured mesh, written as OBJ + MTL + PNG into ``out``."""
+    from hktex_engine.synthetic import textured_demo, write_textured_obj
+
+    vertices, faces, corner_uvs, texture = textured_demo(args.subdivisions, args.texture_size)
+    obj = write_textured_obj(out / "demo_mesh.obj", vertices, faces, corner_uvs, texture)
+    return obj, obj.with_name(obj.stem + "_albedo.png")
+
+
+def _follow(client: Any, job_id: str, args: argparse.Namespace, label: str) -> Any:
+    """Stream the job's progress to stderr (SSE); fall back to polling if the stream drops."""
+    last = -1.0
+    with contextlib.suppress(Exception):
+        for event in client.stream_events(job_id):
+            try:
+                data = event.json()
+            except ValueError:
+                continue
+            prog = data.get("progress", data) if isinstance(data, dict) else {}
+            total = prog.get("total") or 0
+            frac = (prog.get("step", 0) / total) if total else 0.0
+            if frac - last >= 0.1 or data.get("state") in ("succeeded", "failed", "cancelled"):
+                last = frac
+                loss = prog.get("loss")
+                extra = f" loss {loss:.4g}" if isinstance(loss, int | float) else ""
+                kernels = prog.get("kernel_count")
+                extra += f" kernels {kernels}" if kernels else ""
+                _say(args, f"{label}: {data.get('state', '?')} {100 * frac:.0f}%{extra}")
+    return client.wait(job_id, timeout=args.timeout, poll=0.5)
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    if data[:8] != b"\x89PNG\r\n\x1a\n":
+        raise ValueError("the service's render is not a PNG")
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def _uv_reference_png(obj: Path, texture: Path, args: argparse.Namespace) -> bytes | None:
+    """The same view rendered with the mesh's own UV texture (the thing being replaced)."""
+    try:
+        from hktex_engine.mesh import load_mesh
+        from hktex_engine.render import Lighting, RenderSettings, encode_png, render_uv
+    except ImportError:
+        return None
+    mesh = load_mesh(obj, texture=texture)
+    size = args.render_size
+    settings = RenderSettings(width=size, height=size, spp=16, lighting=Lighting())
+    return encode_png(render_uv(mesh, args.view, settings))
+
+
+def _evaluate(client: Any, ks_id: str, obj: Path, texture: Path, n: int, seed: int) -> dict:
+    """Surface PSNR through the API (EVALUATION.md protocol, ``n`` points), by face and by point.
+
+    Face ids of the service are the file's own face order, so samples drawn on the locally
+    loaded file are valid query locations; the point query goes through the service's
+    closest-point path and must agree with the face query.
+    """
+    from hktex_engine.mesh import load_mesh
+    from hktex_engine.metrics import psnr, surface_samples
+    from hktex_engine.sampling import points_from_barycentric
+
+    mesh = load_mesh(obj, texture=texture)
+    face_ids, bary, target = surface_samples(mesh, n, seed)
+    t0 = time.perf_counter()
+    colors = client.albedo(ks_id, face_ids=face_ids, barycentrics=bary)
+    t_faces = time.perf_counter() - t0
+    m = min(n, 2000)
+    points = mesh.to_file_units(
+        points_from_barycentric(mesh.vertices, mesh.faces, face_ids[:m], bary[:m])
+    )
+    t0 = time.perf_counter()
+    at_points = client.albedo(ks_id, points=points)
+    t_points = time.perf_counter() - t0
+    # The base colour alone is the trivial predictor every fit must beat.
+    mean_psnr = psnr(np.broadcast_to(target.mean(0), target.shape), target)
+    return {
+        "surface_psnr_db": round(float(psnr(colors, target)), 3),
+        "mean_colour_psnr_db": round(float(mean_psnr), 3),
+        "eval_points": int(n),
+        "query_seconds_faces": round(t_faces, 3),
+        "query_points_per_second": round(n / max(t_faces, 1e-9)),
+        "query_seconds_points": round(t_points, 3),
+        "point_vs_face_max_abs_diff": round(float(np.abs(at_points - colors[:m]).max()), 5),
+    }
+
+
+def run_demo(args: argparse.Namespace) -> dict:
+    """Run the demo end to end and write the report; returns the CLI summary."""
+    from hktex_client import Client
+
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    data_dir = Path(args.data_dir).resolve() if args.data_dir else out / "data"
+    anisotropies = [float(a) for a in str(args.anisotropies).split(",") if a.strip()]
+    spectral = {
+        "angles": args.angles,
+        "anisotropies": anisotropies,
+        "k": args.k,
+        "k_iso": args.k_iso,
+    }
+    fit = {
+        "kernels": args.kernels,
+        "max_kernels": args.max_kernels,
+        "steps": args.steps,
+        "seed": args.seed,
+    }
+    timer = _Timer()
+    with timer.stage("make mesh"):
+        obj, texture = _make_mesh(args, out)
+    _say(args, f"mesh written to {obj}")
+    settings = Settings(data_dir=data_dir, workers=1, tokens="")
+    with running_service(settings) as url, Client(url, timeout=300) as client:
+        _say(args, f"service at {url} (data in {data_dir})")
+        info = client.info()
+        with timer.stage("upload"):
+            mesh = client.upload_mesh(obj, texture=texture)
+        _say(args, f"uploaded mesh {mesh.id}: {mesh.n_vertices} vertices, {mesh.n_faces} faces")
+        with timer.stage("spectra"):
+            spectra = client.request_spectra(mesh.id, **spectral)
+            if not spectra.ready:
+                if spectra.job_id:
+                    _follow(client, spectra.job_id, args, "spectra")
+                spectra = client.get_spectra(spectra.id)
+        _say(args, f"spectra {spectra.id}: {spectra.state}")
+        with timer.stage("fit"):
+            job = client.fit_uv(mesh.id, spectra=spectral, **fit)
+            job = _follow(client, job.id, args, "fit")
+        ks_id = job.result.kernelset_id
+        if not ks_id:
+            raise RuntimeError(f"fit job {job.id} succeeded without a kernel set")
+        kernelset = client.get_kernelset(ks_id)
+        hkt = client.download_kernelset(ks_id, out / "demo.hkt")
+        with timer.stage("query"):
+            quality = _evaluate(client, ks_id, obj, texture, args.eval_points, args.seed + 1)
+        _say(args, f"surface PSNR {quality['surface_psnr_db']} dB")
+        with timer.stage("render"):
+            png = client.render(
+                ks_id, width=args.render_size, height=args.render_size, view=args.view
+            )
+        _png_size(png)
+        (out / "render_kernels.png").write_bytes(png)
+    with timer.stage("render UV reference"):
+        reference = _uv_reference_png(obj, texture, args)
+    if reference is not None:
+        (out / "render_uv_texture.png").write_bytes(reference)
+    summary = _summary(args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info)
+    report = _write_report(out, summary, reference is not None)
+    summary["report"] = str(report)
+    summary["message"] = f"hktex demo: report written to {report}"
+    return summary
+
+
+def _summary(args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info) -> dict:
+    from hktex_engine.metrics import storage_bytes
+
+    hkt_bytes = storage_bytes(hkt)
+    return {
+        "mesh": {"id": mesh.id, "vertices": mesh.n_vertices, "faces": mesh.n_faces},
+        "spectra": {"id": spectra.id, "config": spectra.config},
+        "job": {"id": job.id, "state": job.state, "steps": args.steps},
+        "kernelset": {
+            "id": kernelset.id,
+            "kernels": kernelset.n_kernels,
+            "file_bytes": hkt.stat().st_size,
+            "raw_bytes": hkt_bytes["raw"],
+            "zip_bytes": hkt_bytes["zip"],
+            "fit_metrics": kernelset.metrics,
+        },
+        "texture_png_bytes": texture.stat().st_size,
+        "quality": quality,
+        "timings_s": timer.stages,
+        "service": {"version": info.version, "devices": info.devices},
+    }
+
+
+def _write_report(out: Path, s: dict, has_reference: bool) -> Path:
+    """report.md and report.html side by side; summary.json for machines."""
+    (out / "summary.json").write_text(json.dumps(s, indent=2, default=str))
+    ks, q = s["kernelset"], s["quality"]
+    rows = [
+        ("mesh", f"{s['mesh']['vertices']:,} vertices, {s['mesh']['faces']:,} faces"),
+        ("kernels", f"{ks['kernels']:,}"),
+        (
+            "kernel set (.hkt)",
+            f"{ks['file_bytes']:,} B file, {ks['raw_bytes']:,} B raw, {ks['zip_bytes']:,} B zipped",
+        ),
+        ("original texture (PNG)", f"{s['texture_png_bytes']:,} B"),
+        (
+            "surface PSNR",
+            f"{q['surface_psnr_db']} dB over {q['eval_points']:,} points "
+            f"(mean colour alone: {q['mean_colour_psnr_db']} dB)",
+        ),
+        ("albedo query", f"{q['query_points_per_second']:,} points/s over HTTP (NPY)"),
+        ("point vs face query", f"max |diff| {q['point_vs_face_max_abs_diff']}"),
+    ] + [(f"time: {k}", f"{v:.1f} s") for k, v in s["timings_s"].items()]
+    images = [("render_kernels.png", "heat-kernel texture (service render)")]
+    if has_reference:
+        images.append(("render_uv_texture.png", "original UV texture (same view)"))
+    md = [
+        "# HKTex demo",
+        "",
+        " | ".join(f"![{c}]({f})" for f, c in images),
+        "",
+        " | ".join(c for _, c in images),
+        "",
+        "| | |",
+        "|---|---|",
+    ]
+    md += [f"| {k} | {v} |" for k, v in rows]
+    md += ["", "Machine-readable: `summary.json`; the kernel set: `demo.hkt`."]
+    (out / "report.md").write_text("\n".join(md) + "\n")
+    figs = "".join(
+        f'<figure><img src="{f}" width="320"><figcaption>{html.escape(c)}</figcaption></figure>'
+        for f, c in images
+    )
+    table = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
+    (out / "report.html").write_text(
+        "<!doctype html><meta charset=utf-8><title>HKTex demo</title>"
+        "<style>body{font-family:sans-serif;max-width:60em;margin:2em auto}"
+        "figure{display:inline-block;margin:0 1em}th{text-align:left;padding-right:1em}</style>"
+        f"<h1>HKTex demo</h1><div>{figs}</div><table>{table}</table>"
+    )
+    return out / "report.html"
