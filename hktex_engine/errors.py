@@ -63,3 +63,7 @@ class QueryError(HKTexError):
 
 class Cancelled(HKTexError):
     """A long task stopped because its owner asked it to (cooperative cancellation)."""
+
+
+class RenderError(HKTexError):
+    """Rendering cannot run: no Mitsuba AD variant loads, or the scene cannot be built."""
