@@ -1,0 +1,82 @@
+"""The service's commands in ``hktex``: serve, worker, demo.
+
+Flags override the ``HKTEX_*`` environment, which overrides the defaults (Settings).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from hktex_server.settings import Settings
+
+
+def settings_from(args: argparse.Namespace, **extra: Any) -> Settings:
+    given = {
+        "host": getattr(args, "host", None),
+        "port": getattr(args, "port", None),
+        "data_dir": getattr(args, "data_dir", None),
+        "database_url": getattr(args, "database", None),
+        "workers": getattr(args, "workers", None),
+        "devices": getattr(args, "devices", None),
+        **extra,
+    }
+    return Settings(**{k: v for k, v in given.items() if v is not None})
+
+
+def cmd_serve(args: argparse.Namespace) -> dict:
+    import uvicorn
+    from hktex_server.app import create_app
+
+    settings = settings_from(args)
+    settings.check_bind()  # ValueError -> one stderr line, exit 2
+    app = create_app(settings)
+    print(f"hktex serve: http://{settings.host}:{settings.port}/v1 (data {settings.data_dir})")
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level)
+    return {"stopped": True}
+
+
+def cmd_worker(args: argparse.Namespace) -> dict:
+    from hktex_server.supervisor import main_loop
+
+    settings = settings_from(args)
+    if settings.workers < 1:
+        raise ValueError("--workers must be >= 1 for a standalone supervisor")
+    main_loop(settings)
+    return {"stopped": True}
+
+
+def cmd_demo(args: argparse.Namespace) -> dict:
+    from hktex_server.demo import run_demo
+
+    return run_demo(args)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-dir", type=Path, default=None, help="data directory (HKTEX_DATA_DIR)")
+    p.add_argument("--database", default=None, help="SQLAlchemy URL (HKTEX_DATABASE_URL)")
+    p.add_argument("--workers", type=int, default=None, help="job slots (HKTEX_WORKERS)")
+    p.add_argument("--devices", default=None, help='CUDA ids for the slots, e.g. "0,1"')
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    serve = subparsers.add_parser("serve", help="run the REST API with an embedded supervisor")
+    serve.add_argument("--host", default=None, help="bind address (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="port (default 8000)")
+    serve.add_argument("--log-level", default="info")
+    _common(serve)
+    serve.set_defaults(func=cmd_serve)
+
+    worker = subparsers.add_parser("worker", help="run a job supervisor alone (no API)")
+    _common(worker)
+    worker.set_defaults(func=cmd_worker)
+
+    demo = subparsers.add_parser("demo", help="end-to-end demo through the service and client")
+    try:
+        from hktex_server.demo import register_demo_args
+    except ImportError:  # demo module not installed: the command explains itself when run
+        pass
+    else:
+        register_demo_args(demo)
+    demo.set_defaults(func=cmd_demo)

@@ -1,0 +1,27 @@
+"""What every route needs, built once per app: settings, database, blob store, query cache."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+from fastapi import Request
+from hktex_server.blobs import BlobStore
+from hktex_server.db import Database
+from hktex_server.querycache import QueryCache
+from hktex_server.settings import Settings
+
+
+@dataclass
+class ServiceState:
+    settings: Settings
+    db: Database
+    store: BlobStore
+    queries: QueryCache
+    render_lock: threading.Semaphore = field(default_factory=lambda: threading.Semaphore(1))
+    workers: int = 0
+
+
+def service(request: Request) -> ServiceState:
+    """FastAPI dependency: the app's shared state."""
+    return request.app.state.svc
