@@ -229,3 +229,45 @@ def test_token_is_sent_as_bearer() -> None:
 
     with Client("http://hktex.test", token="s3cret", transport=httpx.MockTransport(handler)) as c:
         assert c.health().status == "ok"
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "MeshRecord",
+        "SpectraRecord",
+        "JobProgress",
+        "JobResult",
+        "JobRecord",
+        "KernelSetRecord",
+        "ViewsRecord",
+        "Health",
+        "QueueDepth",
+        "Info",
+    ],
+)
+def test_client_records_mirror_the_server_schemas(name: str) -> None:
+    # The client cannot import the server (it must stay light), so its records are declared
+    # twice; this is the check that the two declarations name the same fields.
+    from hktex_client import models as client_models
+    from hktex_server import schemas as server_schemas
+
+    ours = set(getattr(client_models, name).model_fields)
+    theirs = set(getattr(server_schemas, name).model_fields)
+    assert ours == theirs, f"client lacks {theirs - ours}, has extra {ours - theirs}"
+
+
+def test_client_records_parse_a_server_record() -> None:
+    from hktex_client.models import JobRecord as ClientJob
+    from hktex_server import schemas as server_schemas
+
+    record = server_schemas.JobRecord(
+        id="job_1",
+        task="fit_uv",
+        state="running",
+        created_at=1.0,
+        progress=server_schemas.JobProgress(step=3, total=10, loss=0.5, kernel_count=7),
+        result=server_schemas.JobResult(kernelset_id="kst_1"),
+    )
+    job = ClientJob.model_validate_json(record.model_dump_json())
+    assert job.progress.fraction == 0.3 and job.kernelset_id == "kst_1" and not job.done

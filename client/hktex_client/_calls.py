@@ -171,6 +171,10 @@ def upload_views(path: str | Path) -> Call[ViewsRecord]:
     )
 
 
+def get_views(views_id: str) -> Call[ViewsRecord]:
+    return Call("GET", f"{API}/views/{views_id}", _model(ViewsRecord))
+
+
 def get_job(job_id: str) -> Call[JobRecord]:
     return Call("GET", f"{API}/jobs/{job_id}", _model(JobRecord))
 

@@ -58,6 +58,17 @@ def _final_from_event(event: ServerSentEvent) -> bool:
     return isinstance(data, dict) and data.get("state") in FINAL_STATES
 
 
+def _record_from_event(event: ServerSentEvent) -> JobRecord | None:
+    """The job record an event carries (``progress``/``end`` events), else None."""
+    try:
+        data = event.json()
+    except ValueError:
+        return None
+    if not isinstance(data, dict) or "state" not in data:
+        return None
+    return JobRecord.model_validate(data)
+
+
 def _chunks(n: int, chunk_size: int | None) -> list[slice]:
     if not chunk_size or n <= chunk_size:
         return [slice(0, n)]
@@ -215,6 +226,9 @@ class Client:
         """Upload a multi-view dataset archive (images + cameras), streamed."""
         return self._run(calls.upload_views(path))
 
+    def get_views(self, views_id: str) -> ViewsRecord:
+        return self._run(calls.get_views(views_id))
+
     def get_job(self, job_id: str) -> JobRecord:
         return self._run(calls.get_job(job_id))
 
@@ -259,6 +273,13 @@ class Client:
                 yield event
                 if _final_from_event(event):
                     return
+
+    def watch(self, job_id: str) -> Iterator[JobRecord]:
+        """The job's record each time it changes (from the event stream), the final one last."""
+        for event in self.stream_events(job_id):
+            record = _record_from_event(event)
+            if record is not None:
+                yield record
 
     # ---- kernel sets -----------------------------------------------------------------------
 
@@ -432,6 +453,9 @@ class AsyncClient:
     async def upload_views(self, path: str | Path) -> ViewsRecord:
         return await self._run(calls.upload_views(path))
 
+    async def get_views(self, views_id: str) -> ViewsRecord:
+        return await self._run(calls.get_views(views_id))
+
     async def get_job(self, job_id: str) -> JobRecord:
         return await self._run(calls.get_job(job_id))
 
@@ -474,6 +498,12 @@ class AsyncClient:
                 yield event
                 if _final_from_event(event):
                     return
+
+    async def watch(self, job_id: str) -> AsyncIterator[JobRecord]:
+        async for event in self.stream_events(job_id):
+            record = _record_from_event(event)
+            if record is not None:
+                yield record
 
     async def get_kernelset(self, kernelset_id: str) -> KernelSetRecord:
         return await self._run(calls.get_kernelset(kernelset_id))
