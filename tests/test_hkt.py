@@ -1,0 +1,170 @@
+"""The .hkt kernel-set file: round trip, compact storage, and every kind of bad file."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.errors import KernelSetError
+from hktex_engine.hkt import hkt_bytes, load_hkt, save_hkt
+from hktex_engine.kernels import KernelSet
+
+
+def make_set(n=50, seed=0, n_faces=300):
+    rng = np.random.default_rng(seed)
+    return KernelSet(
+        face_ids=rng.integers(0, n_faces, n),
+        barycentrics=rng.dirichlet(np.ones(3), n),
+        theta=rng.uniform(0, np.pi, n),
+        eta=rng.uniform(1, 200, n),
+        threshold=rng.uniform(0.3, 0.9999, n),
+        sharpness=rng.uniform(10, 200, n),
+        colors=rng.uniform(-1, 1, (n, 3)),
+        base_color=rng.uniform(0, 1, 3),
+        kernel_config=KernelConfig(1e-3, 0.07, 50, 8),
+        mesh_hash="m" * 64,
+        config_hash="c" * 64,
+        color_space="linear",
+        fitting={"task": "fit_uv", "steps": 10, "metrics": {"psnr": 31.5}},
+        extras={"note": "test"},
+    )
+
+
+def test_round_trip_exact(tmp_path):
+    ks = make_set()
+    path = save_hkt(ks, tmp_path / "a.hkt", compact=False)
+    back = load_hkt(path, expect_mesh_hash="m" * 64, expect_config_hash="c" * 64)
+    for name in (
+        "face_ids",
+        "barycentrics",
+        "theta",
+        "eta",
+        "threshold",
+        "sharpness",
+        "colors",
+        "base_color",
+    ):
+        np.testing.assert_allclose(getattr(back, name), getattr(ks, name), rtol=1e-6, atol=1e-7)
+    assert back.kernel_config == ks.kernel_config
+    assert (back.color_space, back.fitting, back.extras) == ("linear", ks.fitting, ks.extras)
+    # numpy's own npz reader sees the same members (the layout is plain .npz)
+    with np.load(path, allow_pickle=False) as npz:
+        np.testing.assert_allclose(npz["theta"], ks.theta, rtol=1e-6)
+
+
+def test_compact_round_trip_and_sizes(tmp_path):
+    ks = make_set(n=2000)
+    path = save_hkt(ks, tmp_path / "c.hkt")
+    back = load_hkt(path)
+    np.testing.assert_array_equal(back.face_ids, ks.face_ids)
+    np.testing.assert_allclose(back.barycentrics, ks.barycentrics, atol=5e-4)
+    np.testing.assert_allclose(back.theta, ks.theta, rtol=1e-3)
+    np.testing.assert_allclose(back.eta, ks.eta, rtol=1e-3)
+    np.testing.assert_allclose(back.threshold, ks.threshold, rtol=1e-7)
+    np.testing.assert_allclose(back.colors, ks.colors, atol=5e-4)
+    sizes = hkt_bytes(ks)
+    full = hkt_bytes(ks, compact=False)
+    assert sizes["raw"] == 2000 * (2 + 6 + 2 + 2 + 4 + 2 + 6) + 12
+    assert sizes["zip"] < full["zip"] and sizes["raw"] < full["raw"]
+    assert path.stat().st_size == sizes["zip"]
+
+
+def test_refuses_other_mesh_or_config(tmp_path):
+    path = save_hkt(make_set(), tmp_path / "a.hkt")
+    with pytest.raises(KernelSetError, match="another mesh"):
+        load_hkt(path, expect_mesh_hash="x" * 64)
+    with pytest.raises(KernelSetError, match="another spectral config"):
+        load_hkt(path, expect_config_hash="y" * 64)
+
+
+def _rewrite(src, dst, change_member=None, manifest_patch=None, drop=None):
+    """Copy an .hkt, replacing one member's array or patching the manifest."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            name = info.filename
+            data = zin.read(name)
+            if drop and name == drop:
+                continue
+            if change_member and name == change_member[0] + ".npy":
+                buf = io.BytesIO()
+                np.save(buf, change_member[1], allow_pickle=True)
+                data = buf.getvalue()
+            if manifest_patch and name == "manifest.json":
+                m = json.loads(data)
+                m.update(manifest_patch)
+                data = json.dumps(m).encode()
+            zout.writestr(name, data)
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"change_member": ("theta", np.full(50, np.nan))}, "NaN"),
+        ({"change_member": ("theta", np.zeros(49))}, "shape"),
+        ({"change_member": ("eta", np.full(50, 500.0))}, "out of range"),
+        ({"change_member": ("threshold", np.full(50, 1.0))}, "out of range"),
+        ({"change_member": ("barycentrics", np.full((50, 3), 0.5))}, "barycentrics"),
+        ({"change_member": ("face_ids", np.full(50, -1))}, "face ids"),
+        ({"change_member": ("face_ids", np.zeros(50))}, "integers"),
+        ({"change_member": ("colors", np.array([{"a": 1}] * 50))}, "npy"),
+        ({"drop": "colors.npy"}, "lacks member"),
+        ({"drop": "manifest.json"}, "no manifest"),
+        ({"manifest_patch": {"format": "something-else"}}, "format"),
+        ({"manifest_patch": {"version": 99}}, "version"),
+        ({"manifest_patch": {"count": 10}}, "larger than|shape"),
+        ({"manifest_patch": {"sigma_b": -1}}, "kernel config"),
+        ({"manifest_patch": {"color_space": "cmyk"}}, "color_space"),
+    ],
+)
+def test_inconsistent_files(tmp_path, change, match):
+    src = save_hkt(make_set(), tmp_path / "good.hkt", compact=False)
+    bad = _rewrite(src, tmp_path / "bad.hkt", **change)
+    with pytest.raises(KernelSetError, match=match):
+        load_hkt(bad)
+
+
+def test_truncated_and_foreign_files(tmp_path):
+    good = save_hkt(make_set(), tmp_path / "good.hkt").read_bytes()
+    for cut in (10, len(good) // 2, len(good) - 30):
+        (tmp_path / "t.hkt").write_bytes(good[:cut])
+        with pytest.raises(KernelSetError):
+            load_hkt(tmp_path / "t.hkt")
+    (tmp_path / "text.hkt").write_text("hello, not a zip")
+    with pytest.raises(KernelSetError, match="not a valid zip"):
+        load_hkt(tmp_path / "text.hkt")
+    corrupt = bytearray(good)
+    start = good.find(b"theta.npy") + 40  # inside the deflated theta payload
+    corrupt[start : start + 8] = b"\xff" * 8
+    (tmp_path / "crc.hkt").write_bytes(bytes(corrupt))
+    with pytest.raises(KernelSetError):
+        load_hkt(tmp_path / "crc.hkt")
+    with pytest.raises(FileNotFoundError):
+        load_hkt(tmp_path / "missing.hkt")
+
+
+def test_zip_bomb_member_refused_before_reading(tmp_path):
+    src = save_hkt(make_set(n=5), tmp_path / "small.hkt", compact=False)
+    bomb = tmp_path / "bomb.hkt"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zout:
+        for info in zin.infolist():
+            data = zin.read(info.filename)
+            if info.filename == "theta.npy":
+                data = data + b"\0" * (50 << 20)  # 50 MB of zeros, deflates to ~50 KB
+            zout.writestr(info.filename, data)
+    assert bomb.stat().st_size < 1 << 20
+    with pytest.raises(KernelSetError, match="larger than"):
+        load_hkt(bomb)
+
+
+def test_save_refuses_invalid_and_is_atomic(tmp_path):
+    ks = make_set()
+    ks.theta[3] = 9.0
+    with pytest.raises(KernelSetError, match="theta"):
+        save_hkt(ks, tmp_path / "x.hkt")
+    assert list(tmp_path.iterdir()) == []
