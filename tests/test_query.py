@@ -1,0 +1,140 @@
+"""AlbedoQuery: validation, file-unit points, chunking with bounded tensor sizes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.errors import KernelSetError, QueryError
+from hktex_engine.interpolation import SpectralField
+from hktex_engine.kernels import HeatKernelModel, KernelSet
+from hktex_engine.query import AlbedoQuery
+from tests.kernels_support import random_kernels, random_points, tiny_spectra
+
+CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=10, k_blend=4)
+
+
+@pytest.fixture(scope="module")
+def spectra():
+    # a non-trivial file frame, so file units and normalised units differ
+    sp = tiny_spectra()
+    return dataclasses.replace(sp, scale=0.5, translation=np.array([0.25, -1.0, 2.0]))
+
+
+@pytest.fixture(scope="module")
+def kernelset(spectra):
+    kp = random_kernels(spectra, 40, seed=3)
+    kp["threshold"] = np.random.default_rng(4).uniform(0.3, 0.6, 40)
+    return KernelSet(
+        face_ids=kp["face_ids"],
+        barycentrics=kp["bary"],
+        theta=kp["theta"],
+        eta=kp["eta"],
+        threshold=kp["threshold"],
+        sharpness=kp["sharpness"],
+        colors=kp["colors"],
+        base_color=kp["base_color"],
+        kernel_config=CONFIG,
+        mesh_hash=spectra.mesh_hash,
+        config_hash=spectra.config_hash,
+    )
+
+
+@pytest.fixture(scope="module")
+def query(spectra, kernelset):
+    return AlbedoQuery(spectra, kernelset, device="cpu")
+
+
+def test_colors_match_the_model(spectra, kernelset, query):
+    face_ids, bary = random_points(spectra, 50, seed=5)
+    got = query.colors(face_ids, bary)
+    assert got.dtype == np.float32 and got.shape == (50, 3)
+    field = SpectralField(spectra, device="cpu", dtype=torch.float64)
+    model = HeatKernelModel.from_kernelset(kernelset, field)
+    with torch.no_grad():
+        ref = model.albedo(face_ids, bary).numpy()
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+    assert np.ptp(got) > 0.05
+    assert query.colors(np.zeros(0, dtype=np.int64), np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_points_in_file_units(spectra, query):
+    face_ids, _ = random_points(spectra, 30, seed=6)
+    bary = np.random.default_rng(7).dirichlet(np.full(3, 4.0), 30)  # well inside the faces
+    normalised = np.einsum("pv,pvd->pd", bary, spectra.vertices[spectra.faces[face_ids]])
+    file_units = (normalised - spectra.translation) / spectra.scale
+    np.testing.assert_allclose(
+        query.colors_at_points(file_units), query.colors(face_ids, bary), atol=1e-5
+    )
+
+
+@pytest.mark.parametrize(
+    ("face_ids", "bary", "match"),
+    [
+        (np.array([0, 10**6]), np.full((2, 3), 1 / 3), "face ids"),
+        (np.array([-1, 0]), np.full((2, 3), 1 / 3), "face ids"),
+        (np.array([0.0, 1.0]), np.full((2, 3), 1 / 3), "integers"),
+        (np.array([0, 1]), np.array([[1.2, -0.2, 0.0], [1, 0, 0]]), "non-negative"),
+        (np.array([0, 1]), np.array([[0.5, 0.2, 0.0], [1, 0, 0]]), "sum to 1"),
+        (np.array([0, 1]), np.array([[np.nan, 0.5, 0.5], [1, 0, 0]]), "NaN"),
+        (np.array([0, 1]), np.full((3, 3), 1 / 3), "shape"),
+        (np.array([[0, 1]]), np.full((2, 3), 1 / 3), "shape"),
+        (np.array([0, 1]), np.full((2, 2), 1 / 2), "shape"),
+    ],
+)
+def test_query_validation(query, face_ids, bary, match):
+    with pytest.raises(QueryError, match=match):
+        query.colors(face_ids, bary)
+
+
+@pytest.mark.parametrize(
+    "points", [np.zeros((4, 2)), np.array([[0.0, np.inf, 0.0]]), np.array([["a", "b", "c"]])]
+)
+def test_points_validation(query, points):
+    with pytest.raises(QueryError):
+        query.colors_at_points(points)
+
+
+def test_refuses_a_kernel_set_of_another_mesh(spectra, kernelset):
+    other = dataclasses.replace(kernelset, mesh_hash="0" * 64)
+    with pytest.raises(KernelSetError, match="another mesh"):
+        AlbedoQuery(spectra, other, device="cpu")
+    other = dataclasses.replace(kernelset, config_hash="0" * 64)
+    with pytest.raises(KernelSetError, match="config"):
+        AlbedoQuery(spectra, other, device="cpu")
+
+
+class _LargestTensor(TorchDispatchMode):
+    """Records the largest tensor any torch operation produces."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.largest = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        for t in out if isinstance(out, tuple | list) else (out,):
+            if isinstance(t, torch.Tensor):
+                self.largest = max(self.largest, t.numel() * t.element_size())
+        return out
+
+
+def test_chunked_memory_is_bounded(spectra, kernelset):
+    chunked = AlbedoQuery(spectra, kernelset, device="cpu", chunk_points=16)
+    whole = AlbedoQuery(spectra, kernelset, device="cpu", chunk_points=10**6)
+    sizes = []
+    for p in (64, 512):
+        face_ids, bary = random_points(spectra, p, seed=p)
+        with _LargestTensor() as mode:
+            got = chunked.colors(face_ids, bary)
+        sizes.append(mode.largest)
+        np.testing.assert_allclose(got, whole.colors(face_ids, bary), atol=1e-6)
+    assert sizes[0] == sizes[1], "peak tensor size must not grow with the number of points"
+    assert sizes[1] <= 16 * chunked.bytes_per_point()
+    auto = AlbedoQuery(spectra, kernelset, device="cpu", memory_budget=1 << 20)
+    assert auto.chunk_points == (1 << 20) // auto.bytes_per_point()
