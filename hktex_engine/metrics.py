@@ -61,8 +61,9 @@ def ssim(
 ) -> float:
     """Structural similarity of two (H, W[, C]) images; with a mask, the SSIM map's mean over it.
 
-    The map comes from scikit-image (Gaussian-free 7x7 window, its defaults); masking the map
-    rather than the images keeps background pixels from flattering any method.
+    The map comes from scikit-image (uniform 7x7 window, its defaults). Without a mask this is
+    scikit-image's mean SSIM; with one, the map (averaged over channels) is averaged over the
+    masked pixels, so background pixels cannot flatter any method.
     """
     pred = np.asarray(pred, dtype=np.float64)
     target = np.asarray(target, dtype=np.float64)
@@ -71,13 +72,13 @@ def ssim(
             f"ssim needs two equal (H, W[, C]) images, got {pred.shape}, {target.shape}"
         )
     channel_axis = -1 if pred.ndim == 3 else None
-    _, full = structural_similarity(
+    mean, full = structural_similarity(
         pred, target, data_range=data_range, channel_axis=channel_axis, full=True
     )
+    if mask is None:
+        return float(mean)  # scikit-image's own mean (it crops the window-wide border)
     if pred.ndim == 3:
         full = full.mean(axis=-1)
-    if mask is None:
-        return float(full.mean())
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != full.shape:
         raise ValueError(f"mask {mask.shape} does not match image {full.shape}")
