@@ -248,3 +248,9 @@ def main_loop(settings: Settings) -> int:
     sys.stdout.flush()
     sup.run(stop)
     return 0
+
+
+if __name__ == "__main__":  # python -m hktex_server.supervisor (settings from the environment)
+    _raw = os.environ.get("HKTEX_WORKER_SETTINGS")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    sys.exit(main_loop(Settings.model_validate_json(_raw) if _raw else Settings()))

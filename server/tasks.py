@@ -9,6 +9,7 @@ succeeded, and a ``discard`` that removes a product nobody will record.
 from __future__ import annotations
 
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -140,7 +141,6 @@ def run_fit(ctx: TaskContext) -> Outcome:
         result = fit_uv(mesh, spectra, params, progress=ctx.progress, checkpoint_dir=checkpoints)
     else:
         from hktex_engine.fit_multiview import fit_multiview
-
         from hktex_engine.views import load_views
 
         views_row = _get(ctx.db, ViewsRow, job.views_id, "views dataset")
@@ -207,6 +207,8 @@ def run_sleep(ctx: TaskContext) -> Outcome:
             check_cancel(ctx.progress)
         time.sleep(seconds / max(steps, 1))
         ctx.progress.update(step + 1, steps, loss=1.0 / (step + 1), kernels=step)
+    if p.get("crash"):  # a worker dying without a word (segfault, OOM kill)
+        os._exit(int(p["crash"]))
     if p.get("fail"):
         raise ValueError(str(p["fail"]))
     return Outcome({})

@@ -1,0 +1,285 @@
+"""The jobs-table queue with real worker processes: claims, cancel, kill, reaper, retries,
+fair share, spectra deduplication. SQLite always; PostgreSQL when HKTEX_TEST_PG_URL is set.
+
+The internal ``sleep`` task stands in for the engine so these tests measure the queue, not
+the science; markers it writes count how many processes ever ran a job.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import Counter
+
+import pytest
+from hktex_server import jobqueue
+from hktex_server.db import JobRow, SpectraRow
+
+from tests.server_support import (
+    BACKENDS,
+    SupervisorInThread,
+    add_sleep_job,
+    database_url,
+    fast_settings,
+    job,
+    kill_group,
+    migrated,
+    start_supervisor_process,
+    wait_for,
+)
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request, tmp_path):
+    url = database_url(request.param, tmp_path)
+    settings = fast_settings(tmp_path, url)
+    db = migrated(settings)
+    yield settings, db
+    db.dispose()
+
+
+def _state(db, job_id):
+    return job(db, job_id).state
+
+
+def test_concurrent_claims_never_hand_out_a_job_twice(backend, tmp_path):
+    """Four claimers on separate connections race over 60 jobs: each is claimed once."""
+    settings, db = backend
+    ids = [add_sleep_job(db, owner=f"o{i % 3}") for i in range(60)]
+    claimed: list[str] = []
+    lock = threading.Lock()
+
+    def claimer(name: str) -> None:
+        from hktex_server.db import Database
+
+        own_db = Database(settings.resolved_database_url())
+        while (c := jobqueue.claim(own_db, name, 30, running_cap=1000, device="cpu")) is not None:
+            with lock:
+                claimed.append(c.job_id)
+        own_db.dispose()
+
+    threads = [threading.Thread(target=claimer, args=(f"s{i}",)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert sorted(claimed) == sorted(ids)
+    assert max(Counter(claimed).values()) == 1
+
+
+def test_two_supervisor_processes_run_each_job_once(backend, tmp_path):
+    settings, db = backend
+    marker = tmp_path / "runs.txt"
+    ids = [add_sleep_job(db, steps=1, seconds=0.05, marker=str(marker)) for _ in range(6)]
+    procs = [start_supervisor_process(settings.model_copy(update={"workers": 2})) for _ in range(2)]
+    try:
+        wait_for(lambda: all(_state(db, j) == "succeeded" for j in ids), 90, "all jobs done")
+    finally:
+        for p in procs:
+            kill_group(p.pid)
+            p.wait()
+    runs = Counter(line.split()[0] for line in marker.read_text().splitlines())
+    assert runs == dict.fromkeys(ids, 1)
+
+
+def test_progress_and_success(backend):
+    settings, db = backend
+    jid = add_sleep_job(db, steps=4, seconds=0.4)
+    with SupervisorInThread(settings):
+        wait_for(lambda: _state(db, jid) == "succeeded", 30, "success")
+    row = job(db, jid)
+    assert row.progress["step"] == 4 and row.progress["total"] == 4
+    assert row.progress["loss"] == pytest.approx(0.25)
+    assert row.progress["kernel_count"] == 3
+    assert row.attempts == 1 and row.lease_token is None and row.finished_at >= row.started_at
+
+
+def test_cancel_running_job_stops_cooperatively(backend):
+    settings, db = backend
+    jid = add_sleep_job(db, steps=200, seconds=40)
+    with SupervisorInThread(settings):
+        wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
+        assert jobqueue.request_cancel(db, "local", jid).state == "cancelling"
+        t0 = time.monotonic()
+        wait_for(lambda: _state(db, jid) == "cancelled", 30, "cancelled")
+        assert time.monotonic() - t0 < settings.cancel_grace_seconds + 2
+    assert job(db, jid).error == "cancelled by request"
+
+
+def test_cancel_deaf_job_is_terminated(backend):
+    """A task that never polls the flag is stopped by SIGTERM after the grace period."""
+    settings, db = backend
+    jid = add_sleep_job(db, steps=200, seconds=40, ignore_cancel=True)
+    with SupervisorInThread(settings):
+        wait_for(lambda: job(db, jid).pid, 30, "worker pid")
+        jobqueue.request_cancel(db, "local", jid)
+        wait_for(lambda: _state(db, jid) == "cancelled", 30, "cancelled")
+
+
+def test_cancel_queued_job_is_immediate(backend):
+    _settings, db = backend
+    jid = add_sleep_job(db)
+    assert jobqueue.request_cancel(db, "local", jid).state == "cancelled"
+    assert jobqueue.request_cancel(db, "someone-else", jid) is None
+
+
+def test_killed_worker_and_supervisor_job_requeued_and_finished_elsewhere(backend, tmp_path):
+    settings, db = backend
+    marker = tmp_path / "runs.txt"
+    jid = add_sleep_job(db, steps=30, seconds=3, marker=str(marker))
+    first = start_supervisor_process(settings)
+    try:
+        pid = wait_for(lambda: job(db, jid).pid, 60, "worker pid")
+        wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
+    finally:
+        kill_group(pid)  # the job's process group ...
+        kill_group(first.pid)  # ... and its supervisor: nobody will report the death
+        first.wait()
+    assert _state(db, jid) == "running"  # as far as the database knows
+    with SupervisorInThread(settings, name="second"):
+        wait_for(lambda: _state(db, jid) == "succeeded", 60, "re-run to success")
+    row = job(db, jid)
+    assert row.attempts == 2
+    assert [line.split()[1] for line in marker.read_text().splitlines()] == ["1", "2"]
+
+
+def test_orphaned_worker_stops_and_job_runs_once_more(backend, tmp_path):
+    """Supervisor killed, worker alive: the worker notices and quits, never finishing twice."""
+    settings, db = backend
+    marker = tmp_path / "runs.txt"
+    jid = add_sleep_job(db, steps=30, seconds=3, marker=str(marker))
+    first = start_supervisor_process(settings)
+    pid = wait_for(lambda: job(db, jid).pid, 60, "worker pid")
+    wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
+    os.kill(first.pid, 9)
+    first.wait()
+    wait_for(lambda: not _alive(pid), 10, "orphan to exit")
+    with SupervisorInThread(settings, name="second"):
+        wait_for(lambda: _state(db, jid) == "succeeded", 60, "re-run")
+    assert len(marker.read_text().splitlines()) == 2
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (not yet reaped by init) counts as gone
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_crashing_job_retried_then_failed(backend):
+    settings, db = backend
+    jid = add_sleep_job(db, steps=1, seconds=0, crash=9, max_attempts=2)
+    with SupervisorInThread(settings):
+        wait_for(lambda: _state(db, jid) == "failed", 60, "failure")
+    row = job(db, jid)
+    assert row.attempts == 2
+    assert "exited with code 9" in row.error and "gave up after 2" in row.error
+
+
+def test_bad_input_fails_once_without_retry(backend):
+    settings, db = backend
+    jid = add_sleep_job(db, steps=1, seconds=0, fail="no such thing")
+    with SupervisorInThread(settings):
+        wait_for(lambda: _state(db, jid) == "failed", 30, "failure")
+    row = job(db, jid)
+    assert row.attempts == 1 and row.error == "ValueError: no such thing"
+
+
+def test_fair_share_priority_and_per_owner_cap(backend):
+    _settings, db = backend
+    a1 = add_sleep_job(db, owner="alice")
+    a2 = add_sleep_job(db, owner="alice")
+    b1 = add_sleep_job(db, owner="bob")
+    hi = add_sleep_job(db, owner="carol", priority=5)
+    order = []
+    while (c := jobqueue.claim(db, "s", 30, running_cap=1, device="cpu")) is not None:
+        order.append(c.job_id)
+    assert order == [hi, a1, b1]  # alice's second waits for her first
+    assert _state(db, a2) == "queued"
+
+
+def test_expired_lease_is_reaped(backend):
+    _settings, db = backend
+    jid = add_sleep_job(db)
+    claim = jobqueue.claim(db, "gone", lease_seconds=-1, running_cap=9, device="cpu")
+    assert claim.job_id == jid
+    assert jobqueue.reap(db)["requeued"] == 1
+    row = job(db, jid)
+    assert row.state == "queued" and "lease expired" in row.error
+    # the old holder can no longer write anything
+    assert not jobqueue.write_progress(db, jid, claim.token, {"step": 1})
+    assert not jobqueue.finish(db, jid, claim.token, "succeeded")
+
+
+def test_spectra_deduplicated_and_fit_waits_for_them(backend):
+    settings, db = backend
+    results = []
+
+    def ask():
+        results.append(jobqueue.ensure_spectra(db, "alice", "m1", "meshhash", {"k": 8}, "cfg", 3))
+
+    threads = [threading.Thread(target=ask) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len({r.id for r in results}) == 1
+    with db.read() as s:
+        spectra_jobs = s.query(JobRow).filter(JobRow.task == "spectra").all()
+        assert len(spectra_jobs) == 1
+    spectra_id = results[0].id
+    with db.write() as s:
+        fit = jobqueue.enqueue(s, "alice", "fit_uv", spectra_id=spectra_id, priority=10).id
+    first = jobqueue.claim(db, "s", 30, 9, "cpu")
+    assert first.task == "spectra"  # the fit has higher priority but must wait
+    assert jobqueue.claim(db, "s", 30, 9, "cpu") is None
+
+    def ready(s, _job):
+        s.get(SpectraRow, spectra_id).state = "ready"
+
+    assert jobqueue.finish(db, first.job_id, first.token, "succeeded", on_success=ready)
+    assert jobqueue.claim(db, "s", 30, 9, "cpu").job_id == fit
+
+
+def test_failed_spectra_fail_their_fits(backend):
+    _settings, db = backend
+    row = jobqueue.ensure_spectra(db, "alice", "m1", "h", {}, "c", 1)
+    with db.write() as s:
+        fit = jobqueue.enqueue(s, "alice", "fit_uv", spectra_id=row.id).id
+    claim = jobqueue.claim(db, "s", 30, 9, "cpu")
+    jobqueue.finish(db, claim.job_id, claim.token, "failed", error="MeshError: bad")
+    with db.read() as s:
+        assert s.get(SpectraRow, row.id).state == "failed"
+    jobqueue.reap(db)
+    assert "spectra failed: MeshError: bad" in job(db, fit).error
+    # asking again re-queues the spectra
+    again = jobqueue.ensure_spectra(db, "alice", "m1", "h", {}, "c", 1)
+    assert again.id == row.id and again.state == "queued" and again.job_id != claim.job_id
+
+
+def test_progress_writes_are_throttled(backend, monkeypatch):
+    from hktex_server import worker_main
+
+    _settings, db = backend
+    jid = add_sleep_job(db)
+    claim = jobqueue.claim(db, "s", 30, 9, "cpu")
+    writes = []
+    real = jobqueue.write_progress
+    monkeypatch.setattr(jobqueue, "write_progress", lambda *a: writes.append(a) or real(*a))
+    progress = worker_main.DbProgress(db, jid, claim.token)
+    for step in range(1, 500):
+        progress.update(step, 1000, loss=float("nan"), kernels=step, psnr=30.0)
+    progress.flush()
+    assert 1 <= len(writes) <= 3
+    stored = job(db, jid).progress
+    assert stored["step"] == 499 and stored["loss"] is None and stored["metrics"] == {"psnr": 30.0}
+    assert not progress.should_stop()
+    jobqueue.request_cancel(db, "local", jid)
+    time.sleep(progress.poll_interval)
+    assert progress.should_stop() and not progress.lost
