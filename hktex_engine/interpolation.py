@@ -128,7 +128,8 @@ class SpectralField:
         self.spectra = spectra
         evecs = np.asarray(spectra.evecs)
         store = torch.float16 if evecs.dtype == np.float16 else dtype
-        self.evecs = torch.as_tensor(np.ascontiguousarray(evecs)).to(self.device, store)
+        # a copy: the spectra's arrays may be read-only memory maps
+        self.evecs = torch.from_numpy(np.array(evecs, order="C")).to(self.device, store)
         self.evals = self._t(spectra.evals)  # (G, K)
         self.grid_theta = self._t(spectra.grid_theta)
         self.grid_s = self._t(spectra.grid_s)
@@ -143,7 +144,7 @@ class SpectralField:
             )
 
     def _t(self, array: np.ndarray) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(array, dtype=np.float64)).to(self.device, self.dtype)
+        return torch.from_numpy(np.array(array, dtype=np.float64)).to(self.device, self.dtype)
 
     @property
     def n_vertices(self) -> int:

@@ -13,6 +13,7 @@ import torch
 from hktex_engine.errors import KernelSetError, QueryError
 from hktex_engine.interpolation import SpectralField
 from hktex_engine.kernels import HeatKernelModel, KernelSet
+from hktex_engine.progress import Progress, check_cancel
 from hktex_engine.sampling import closest_surface_point
 from hktex_engine.spectra import Spectra
 
@@ -67,7 +68,9 @@ class AlbedoQuery:
         floats = 3 * g * k + k_s * k + k_s * g + 2 * k_s * d + 16 * k_s
         return int(floats * (torch.finfo(self.field.dtype).bits // 8))
 
-    def colors(self, face_ids: np.ndarray, barycentrics: np.ndarray) -> np.ndarray:
+    def colors(
+        self, face_ids: np.ndarray, barycentrics: np.ndarray, progress: Progress | None = None
+    ) -> np.ndarray:
         """Albedo (P, 3) float32 at surface points given as face ids and barycentrics."""
         face_ids, bary = self.validate(face_ids, barycentrics)
         out = np.empty((face_ids.shape[0], 3), dtype=np.float32)
@@ -77,9 +80,12 @@ class AlbedoQuery:
                 f = torch.as_tensor(face_ids[sl], device=self.device)
                 b = torch.as_tensor(bary[sl], device=self.device, dtype=self.field.dtype)
                 out[sl] = self.model.albedo(f, b).cpu().numpy()
+                check_cancel(progress)
+                if progress is not None:
+                    progress.update(min(start + self.chunk_points, len(out)), len(out))
         return out
 
-    def colors_at_points(self, points: np.ndarray) -> np.ndarray:
+    def colors_at_points(self, points: np.ndarray, progress: Progress | None = None) -> np.ndarray:
         """Albedo (P, 3) at the surface points closest to ``points`` given in file units."""
         pts = np.asarray(points)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -93,7 +99,7 @@ class AlbedoQuery:
         face_ids, bary = closest_surface_point(
             self.spectra.vertices, self.spectra.faces, normalised
         )
-        return self.colors(face_ids, bary)
+        return self.colors(face_ids, bary, progress)
 
     def validate(
         self, face_ids: np.ndarray, barycentrics: np.ndarray

@@ -23,7 +23,10 @@ CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=10, k_blend=4)
 def spectra():
     # a non-trivial file frame, so file units and normalised units differ
     sp = tiny_spectra()
-    return dataclasses.replace(sp, scale=0.5, translation=np.array([0.25, -1.0, 2.0]))
+    translation = [0.25, -1.0, 2.0]
+    # write_spectra takes the frame from the manifest, so set it in both places
+    manifest = {**sp.manifest, "scale": 0.5, "translation": translation}
+    return dataclasses.replace(sp, scale=0.5, translation=np.array(translation), manifest=manifest)
 
 
 @pytest.fixture(scope="module")
@@ -138,3 +141,53 @@ def test_chunked_memory_is_bounded(spectra, kernelset):
     assert sizes[1] <= 16 * chunked.bytes_per_point()
     auto = AlbedoQuery(spectra, kernelset, device="cpu", memory_budget=1 << 20)
     assert auto.chunk_points == (1 << 20) // auto.bytes_per_point()
+
+
+def test_cli_query(tmp_path, spectra, kernelset, query, capsys):
+    import json
+
+    from hktex_engine.cli import main
+    from hktex_engine.hkt import save_hkt
+    from hktex_engine.spectra import write_spectra
+
+    sdir = write_spectra(spectra, tmp_path / "spectra")
+    hkt = save_hkt(kernelset, tmp_path / "k.hkt", compact=False)
+    face_ids, bary = random_points(spectra, 25, seed=9)
+    np.save(tmp_path / "f.npy", face_ids)
+    np.save(tmp_path / "b.npy", bary)
+    args = ["query", str(hkt), "--spectra", str(sdir), "-o", str(tmp_path / "c.out")]
+    rc = main(
+        [
+            *args,
+            "--faces",
+            str(tmp_path / "f.npy"),
+            "--barycentrics",
+            str(tmp_path / "b.npy"),
+            "--json",
+        ]
+    )
+    summary = json.loads(capsys.readouterr().out)
+    assert rc == 0 and summary["count"] == 25 and summary["points_per_s"] > 0
+    got = np.load(tmp_path / "c.out")
+    np.testing.assert_allclose(got, query.colors(face_ids, bary), atol=1e-6)
+
+    points = np.einsum("pv,pvd->pd", bary, spectra.vertices[spectra.faces[face_ids]])
+    np.save(tmp_path / "p.npy", (points - spectra.translation) / spectra.scale)
+    assert main([*args, "--points", str(tmp_path / "p.npy")]) == 0
+    np.testing.assert_allclose(np.load(tmp_path / "c.out"), got, atol=1e-5)
+
+    np.save(tmp_path / "bad.npy", np.full(25, 10**7))
+    rc = main(
+        [*args, "--faces", str(tmp_path / "bad.npy"), "--barycentrics", str(tmp_path / "b.npy")]
+    )
+    err = capsys.readouterr().err
+    assert rc == 2 and "face ids" in err and len(err.strip().splitlines()) == 1
+    assert (
+        main([*args, "--points", str(tmp_path / "p.npy"), "--faces", str(tmp_path / "f.npy")]) == 2
+    )
+    assert "either --points" in capsys.readouterr().err
+    (tmp_path / "junk.hkt").write_text("junk")
+    assert (
+        main(["query", str(tmp_path / "junk.hkt"), *args[2:], "--points", str(tmp_path / "p.npy")])
+        == 2
+    )
