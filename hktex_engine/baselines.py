@@ -159,7 +159,9 @@ class UVTextureBaseline:
         full = Image.fromarray(np.round(mesh.texture * 255.0).astype(np.uint8))
         small = full.resize((self.size, self.size), Image.Resampling.LANCZOS)
         buf = io.BytesIO()
-        small.save(buf, format="PNG")
+        # optimize=True: with it our sizes equal EVALUATION.md's to 0.1 KiB on all 15 cases
+        # (Pillow's default settings came out 1-4 % larger).
+        small.save(buf, format="PNG", optimize=True)
         self.png = buf.getvalue()
         self.texture = np.asarray(small, dtype=np.float32) / 255.0
         return self
@@ -169,7 +171,7 @@ class UVTextureBaseline:
 
     @property
     def nbytes(self) -> int:
-        """PNG bytes as written by Pillow (default compression)."""
+        """PNG bytes as written by Pillow with ``optimize=True``."""
         return len(self.png)
 
 
