@@ -46,9 +46,7 @@ class _TooLarge(Exception):
 
 
 def too_large(limit: int) -> HTTPException:
-    return HTTPException(
-        status.HTTP_413_REQUEST_ENTITY_TOO_LARGE, detail=f"request body exceeds {limit} bytes"
-    )
+    return HTTPException(413, detail=f"request body exceeds {limit} bytes")
 
 
 def _check_declared_length(request: Request, limit: int) -> None:
