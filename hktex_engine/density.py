@@ -103,20 +103,32 @@ def densify_selection(
     return chosen[~big], chosen[big]
 
 
+@torch.no_grad()
 def resize_model(model: torch.nn.Module, keep: torch.Tensor, new_rows: dict) -> None:
-    """Keep rows ``keep`` of every per-kernel tensor and append ``new_rows`` (same names).
+    """Keep rows ``keep`` (in order) and append ``new_rows`` (raw attribute names, as
+    :data:`~hktex_engine.optimise.KERNEL_ATTRIBUTES`), through the model's own select/append."""
+    model.select(keep)
+    if int(new_rows["face_ids"].shape[0]) == 0:
+        return
+    model.append(
+        new_rows["face_ids"],
+        new_rows["bary"],
+        new_rows["theta"],
+        torch.expm1(new_rows["s"]),  # append takes eta in natural units
+        new_rows["threshold"],
+        new_rows["sharpness"],
+        new_rows["colors"],
+    )
 
-    Parameters stay parameters (fresh ``nn.Parameter`` objects: their count changed), buffers
-    stay buffers; the caller refreshes the model's query state afterwards.
-    """
-    for name in KERNEL_ATTRIBUTES:
-        old = getattr(model, name)
-        add = torch.as_tensor(new_rows[name]).to(device=old.device, dtype=old.dtype)
-        data = torch.cat([old.detach()[keep], add], dim=0)
-        if isinstance(old, torch.nn.Parameter):
-            setattr(model, name, torch.nn.Parameter(data, requires_grad=old.requires_grad))
-        else:
-            setattr(model, name, data)
+
+@torch.no_grad()
+def load_rows(model: torch.nn.Module, rows: dict[str, torch.Tensor]) -> None:
+    """Replace every kernel row with ``rows`` exactly (bit for bit; used by resume)."""
+    n = int(rows["face_ids"].shape[0])
+    model.select(torch.zeros(n, dtype=torch.long, device=model.face_ids.device))
+    for name in KERNEL_ATTRIBUTES[2:]:
+        getattr(model, name).copy_(rows[name])
+    model.set_centres(rows["face_ids"], rows["bary"])
 
 
 class DensityController:
@@ -273,7 +285,7 @@ class DensityController:
         if split.numel() == 0:
             return out
         eps = rows["threshold"][split]
-        f, b = rows["face_ids"][split], rows["barycentrics"][split]
+        f, b = rows["face_ids"][split], rows["bary"][split]
         axis = long_axis(self.face_frames, self.face_normals, f, rows["theta"][split])
         offset = ((1.0 - eps) * self.rules.split_offset).to(axis.dtype)[:, None] * axis
         ends = trace_on_surface(
@@ -281,7 +293,7 @@ class DensityController:
         )
         children = {name: torch.cat([t[split], t[split]]) for name, t in rows.items()}
         children["face_ids"] = ends[0]
-        children["barycentrics"] = ends[1].to(rows["barycentrics"].dtype)
+        children["bary"] = ends[1].to(rows["bary"].dtype)
         shrunk = 1.0 - (1.0 - eps) / self.rules.split_shrink
         children["threshold"] = torch.cat([shrunk, shrunk])
         return {name: torch.cat([out[name], children[name]]) for name in out}

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from hktex_engine.config import FitParams
-from hktex_engine.density import DensityController, resize_model
+from hktex_engine.density import DensityController, load_rows
 from hktex_engine.errors import Cancelled, HKTexError
 from hktex_engine.optimise import KERNEL_ATTRIBUTES, KernelOptimiser, Tracer
 from hktex_engine.progress import Progress, check_cancel
@@ -80,6 +80,7 @@ class LoopResult:
     resumed_from: int | None
     losses: list[float] = field(default_factory=list)
     kernel_counts: list[int] = field(default_factory=list)
+    density_events: list[dict] = field(default_factory=list)
 
     @property
     def steps_per_second(self) -> float:
@@ -135,12 +136,14 @@ def run_fit(
             loss, stats = objective.loss(model, batch)
             loss.backward()
             density.record(stats)
-            opt.step(step)
-            model.refresh()
+            opt.step(step)  # set_centres invalidates the model's KNN/centre caches itself
             step += 1
+            loss_value = float(loss.detach())
+            # Drop the autograd graph before kernels are added or removed: a live graph keeps
+            # each parameter's gradient accumulator, which remembers the old row count.
+            del loss, stats, batch
             if density.act(step, model, opt):
                 model.refresh()
-            loss_value = float(loss.detach())
             result.losses.append(loss_value)
             result.kernel_counts.append(int(model.face_ids.shape[0]))
             if on_step is not None:
@@ -157,6 +160,7 @@ def run_fit(
             save_checkpoint(ckpt, step, model, opt, density, rng, fp)
         raise
     result.steps = step
+    result.density_events = list(density.events)
     result.steps_run = step - start
     result.seconds = time.perf_counter() - t0
     return result
@@ -244,7 +248,7 @@ def load_checkpoint(
     rows = {
         name: torch.as_tensor(arrays[f"model.{name}"], device=device) for name in KERNEL_ATTRIBUTES
     }
-    resize_model(model, torch.arange(0, device=device), rows)  # replace every row
+    load_rows(model, rows)
     with torch.no_grad():
         model.base_color.copy_(torch.as_tensor(arrays["model.base_color"], device=device))
     opt.load_state_arrays(arrays, device)

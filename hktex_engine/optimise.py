@@ -14,13 +14,12 @@ count per tensor, so a newcomer appended to a long-running tensor would get the 
 correction of step 10,000 for its very first update (an effective first step ~3x too large),
 and its state cannot be gathered row-wise through a public API.
 
-The model is reached through named attributes (see :data:`KERNEL_ATTRIBUTES`); the kernels
-module's ``HeatKernelModel`` holds them as ``nn.Parameter`` s and buffers.
+The model is ``kernels.HeatKernelModel`` (or anything with its attribute names, see
+:data:`KERNEL_ATTRIBUTES`, and its ``project_``, ``set_centres``, ``select``, ``append``).
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -29,26 +28,26 @@ import torch
 
 from hktex_engine.config import FitParams
 
-#: per-kernel attributes optimised by Adam, with the FitParams field holding their learning rate
+#: tensors optimised by Adam (the model's attribute names) -> FitParams learning-rate field.
+#: ``s`` = ln(1 + eta) is the model's parameter for the anisotropy (kernels.HeatKernelModel).
 ATTRIBUTE_LRS: dict[str, str] = {
     "colors": "lr_colors",
     "theta": "lr_theta",
-    "eta": "lr_eta",
+    "s": "lr_eta",
     "threshold": "lr_threshold",
     "sharpness": "lr_sharpness",
+    "base_color": "lr_base",
 }
-#: every per-kernel tensor of the model, in the order checkpoints store them
-KERNEL_ATTRIBUTES: tuple[str, ...] = ("face_ids", "barycentrics", *ATTRIBUTE_LRS)
-
-#: parameter boxes of ALGORITHM.md section 4 (threshold's open upper end kept by a margin)
-RANGES: dict[str, tuple[float, float]] = {
-    "theta": (0.0, math.pi),
-    "eta": (1.0, 200.0),
-    "threshold": (0.3, 1.0 - 1e-4),
-    "sharpness": (10.0, 200.0),
-    "colors": (-1.0, 1.0),
-    "base_color": (0.0, 1.0),
-}
+#: every per-kernel tensor of the model (the centre is face_ids + bary), checkpoint order
+KERNEL_ATTRIBUTES: tuple[str, ...] = (
+    "face_ids",
+    "bary",
+    "theta",
+    "s",
+    "threshold",
+    "sharpness",
+    "colors",
+)
 
 
 class Tracer(Protocol):
@@ -78,6 +77,7 @@ def tangent_gradient(
     tri = vertices[faces[face_ids]]  # (N, 3, 3)
     edges = tri[:, 1:, :] - tri[:, :1, :]  # (N, 2, 3): e_1, e_2
     gram = edges @ edges.transpose(1, 2)  # (N, 2, 2)
+    grad_bary = grad_bary.to(vertices.dtype)
     rhs = (grad_bary[:, 1:] - grad_bary[:, :1]).unsqueeze(-1)  # (N, 2, 1)
     coeffs = torch.linalg.solve(gram, rhs)  # (N, 2, 1)
     return (coeffs.transpose(1, 2) @ edges).squeeze(1)  # (N, 3)
@@ -115,7 +115,7 @@ def trace_on_surface(
     return (
         torch.as_tensor(np.asarray(f_end), dtype=torch.long, device=device),
         torch.as_tensor(np.asarray(b_end), dtype=dtype, device=device),
-        torch.as_tensor(np.asarray(v_end), dtype=dtype, device=device),
+        torch.as_tensor(np.asarray(v_end), dtype=vectors.dtype, device=device),
     )
 
 
@@ -143,7 +143,7 @@ class RowAdam:
     def _rows(self, name: str, p: torch.Tensor) -> _AdamRows:
         st = self.state.get(name)
         if st is None or st.exp_avg.shape != p.shape:
-            per_row = p.dim() >= 1 and name != "base_color"
+            per_row = name != "base_color"
             st = _AdamRows(
                 torch.zeros_like(p),
                 torch.zeros_like(p),
@@ -236,16 +236,6 @@ def model_tensors(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return out
 
 
-@torch.no_grad()
-def project_(model: torch.nn.Module) -> None:
-    """Clamp every attribute into its box (ALGORITHM.md 4) and renormalise barycentrics."""
-    for name, (lo, hi) in RANGES.items():
-        getattr(model, name).clamp_(lo, hi)
-    b = model.barycentrics
-    b.clamp_(min=0.0)
-    b.div_(b.sum(dim=1, keepdim=True).clamp_min(1e-12))
-
-
 class KernelOptimiser:
     """Adam on attributes + Riemannian SGD on centres for one model; state resizable by rows."""
 
@@ -263,7 +253,6 @@ class KernelOptimiser:
         self.vertices = vertices
         self.faces = faces
         lrs = {name: getattr(params, field) for name, field in ATTRIBUTE_LRS.items()}
-        lrs["base_color"] = params.lr_base
         self.adam = RowAdam(lrs)
         mom = params.center_momentum if momentum is None else momentum
         self.centres = RiemannianSGD(tracer, params.lr_centers, mom)
@@ -279,13 +268,12 @@ class KernelOptimiser:
         tensors = model_tensors(self.model)
         attrs = {k: v for k, v in tensors.items() if k in self.adam.lrs}
         self.adam.step(attrs, scale)
-        gb = self.model.barycentrics.grad
+        self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
+        gb = self.model.bary.grad
         if gb is not None:
             g = tangent_gradient(self.vertices, self.faces, self.model.face_ids, gb)
-            f, b = self.centres.step(self.model.face_ids, self.model.barycentrics, g, scale)
-            self.model.face_ids.copy_(f)
-            self.model.barycentrics.copy_(b)
-        project_(self.model)
+            f, b = self.centres.step(self.model.face_ids, self.model.bary, g, scale)
+            self.model.set_centres(f, b)
 
     def resize(self, keep: torch.Tensor, n_new: int) -> None:
         self.adam.resize(keep, n_new)

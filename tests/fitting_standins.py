@@ -69,62 +69,86 @@ class FlatTracer:
 
 
 class ToyModel(torch.nn.Module):
-    """Isotropic Gaussian 'kernels' with the attribute names of HeatKernelModel.
+    """Isotropic Gaussian 'kernels' with the attribute names and row API of HeatKernelModel.
 
     albedo = clamp(a0 + sum_j rho_j a_j / max(1, sum rho), 0, 1) over the top-k responses,
-    rho_j = exp(-|x - c_j|^2 / (2 sigma^2)) scaled by the threshold so that every attribute
-    receives a gradient somewhere (theta/eta/sharpness enter through the width).
+    rho_j = exp(-|x - c_j|^2 / (2 w_j^2)) scaled by the threshold; theta, s and sharpness enter
+    the width w_j slightly so that every attribute receives a gradient.
     """
 
     def __init__(self, v, f, face_ids, bary, colors=None, k_blend: int = 4, sigma: float = 0.25):
         super().__init__()
         n = len(face_ids)
         g = torch.Generator().manual_seed(1)
-        self.register_buffer("V", torch.as_tensor(v, dtype=torch.float64))
+        dt = torch.float64
+        self.register_buffer("V", torch.as_tensor(v, dtype=dt))
         self.register_buffer("F", torch.as_tensor(f, dtype=torch.long))
         self.register_buffer("face_ids", torch.as_tensor(face_ids, dtype=torch.long))
-        self.barycentrics = torch.nn.Parameter(torch.as_tensor(bary, dtype=torch.float64))
-        self.theta = torch.nn.Parameter(torch.rand(n, generator=g, dtype=torch.float64) * 3)
-        self.eta = torch.nn.Parameter(1 + 10 * torch.rand(n, generator=g, dtype=torch.float64))
-        self.threshold = torch.nn.Parameter(
-            0.9 + 0.09 * torch.rand(n, generator=g, dtype=torch.float64)
-        )
-        self.sharpness = torch.nn.Parameter(
-            10 + 20 * torch.rand(n, generator=g, dtype=torch.float64)
-        )
-        c = (
-            colors
-            if colors is not None
-            else 0.2 * torch.randn(n, 3, generator=g, dtype=torch.float64)
-        )
-        self.colors = torch.nn.Parameter(torch.as_tensor(c, dtype=torch.float64))
-        self.base_color = torch.nn.Parameter(torch.full((3,), 0.5, dtype=torch.float64))
+        self.bary = torch.nn.Parameter(torch.as_tensor(bary, dtype=dt))
+        self.theta = torch.nn.Parameter(torch.rand(n, generator=g, dtype=dt) * 3)
+        self.s = torch.nn.Parameter(torch.log1p(1 + 10 * torch.rand(n, generator=g, dtype=dt)))
+        self.threshold = torch.nn.Parameter(0.9 + 0.09 * torch.rand(n, generator=g, dtype=dt))
+        self.sharpness = torch.nn.Parameter(10 + 20 * torch.rand(n, generator=g, dtype=dt))
+        c = colors if colors is not None else 0.2 * torch.randn(n, 3, generator=g, dtype=dt)
+        self.colors = torch.nn.Parameter(torch.as_tensor(c, dtype=dt))
+        self.base_color = torch.nn.Parameter(torch.full((3,), 0.5, dtype=dt))
         self.k_blend = k_blend
         self.sigma = sigma
         self.refreshes = 0
 
+    def _rows(self):
+        return [self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors]
+
     def centres(self) -> torch.Tensor:
-        return (self.V[self.F[self.face_ids]] * self.barycentrics[:, :, None]).sum(1)
+        return (self.V[self.F[self.face_ids]] * self.bary[:, :, None]).sum(1)
 
     def albedo(self, face_ids, bary, return_aux=False):
         x = (self.V[self.F[face_ids]] * bary[:, :, None]).sum(1)
         d2 = ((x[:, None, :] - self.centres()[None]) ** 2).sum(-1)
         width = self.sigma * (
-            1 + 0.01 * torch.cos(self.theta) + 0.001 * self.eta + 0.001 * self.sharpness
+            1 + 0.01 * torch.cos(self.theta) + 0.001 * self.s + 0.001 * self.sharpness
         )
         rho = torch.exp(-d2 / (2 * width[None] ** 2)) * self.threshold[None]
         k = min(self.k_blend, rho.shape[1])
         vals, idx = rho.topk(k, dim=1)
-        a = self.base_color + (vals[..., None] * self.colors[idx]).sum(1) / vals.sum(
-            1, keepdim=True
-        ).clamp_min(1)
-        a = a.clamp(0, 1)
-        if return_aux:
-            return a, (idx, vals)
-        return a
+        blend = (vals[..., None] * self.colors[idx]).sum(1) / vals.sum(1, keepdim=True).clamp_min(1)
+        a = (self.base_color + blend).clamp(0, 1)
+        return (a, {"indices": idx, "rho": vals}) if return_aux else a
 
     def refresh(self) -> None:
         self.refreshes += 1
+
+    @torch.no_grad()
+    def project_(self) -> None:
+        self.theta.clamp_(0, np.pi)
+        self.s.clamp_(np.log(2.0), np.log(201.0))
+        self.threshold.clamp_(0.3, 1 - 1e-4)
+        self.sharpness.clamp_(10, 200)
+        self.colors.clamp_(-1, 1)
+        self.base_color.clamp_(0, 1)
+
+    @torch.no_grad()
+    def set_centres(self, face_ids, bary) -> None:
+        self.face_ids = torch.as_tensor(face_ids, dtype=torch.long)
+        self.bary.data = torch.as_tensor(bary, dtype=torch.float64).clone()
+
+    @torch.no_grad()
+    def select(self, idx):
+        idx = torch.as_tensor(idx, dtype=torch.long)
+        self.face_ids = self.face_ids[idx]
+        for p in self._rows():
+            p.data = p.data[idx]
+            p.grad = None
+        return self
+
+    @torch.no_grad()
+    def append(self, face_ids, bary, theta, eta, threshold, sharpness, colors):
+        self.face_ids = torch.cat([self.face_ids, torch.as_tensor(face_ids, dtype=torch.long)])
+        new = [bary, theta, torch.log1p(torch.as_tensor(eta)), threshold, sharpness, colors]
+        for p, rows in zip(self._rows(), new, strict=True):
+            p.data = torch.cat([p.data, torch.as_tensor(rows, dtype=torch.float64)])
+            p.grad = None
+        return self
 
 
 def two_colour(points: torch.Tensor) -> torch.Tensor:
@@ -151,7 +175,8 @@ class ToyObjective:
         from hktex_engine.fitting import PointStats
 
         fid, b = batch
-        pred, (idx, rho) = model.albedo(fid, b, return_aux=True)
+        pred, aux = model.albedo(fid, b, return_aux=True)
+        idx, rho = aux["indices"], aux["rho"]
         x = (self.V[self.F[fid]] * b[:, :, None]).sum(1)
         target = two_colour(x)
         loss = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0)

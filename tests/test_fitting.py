@@ -30,7 +30,7 @@ def _params(**kw):
 
 
 def _rows(model):
-    names = ("face_ids", "barycentrics", "theta", "eta", "threshold", "sharpness", "colors")
+    names = ("face_ids", "bary", "theta", "s", "threshold", "sharpness", "colors")
     return {k: getattr(model, k).detach().clone() for k in (*names, "base_color")}
 
 
