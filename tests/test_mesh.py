@@ -307,3 +307,30 @@ def test_shared_meshes_load_with_documented_counts(shared_data, rel, tex, n, m, 
     assert mesh.corner_uvs.shape == (m, 3, 2)
     extent = mesh.vertices.max(axis=0) - mesh.vertices.min(axis=0)
     assert extent.max() == pytest.approx(2.0)
+
+
+def test_header_counts_cannot_blow_memory(tmp_path):
+    """Headers claiming 10^12 elements over a tiny body must fail fast, not allocate."""
+    ply = (
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\n"
+        b"property float x\nproperty float y\nproperty float z\n"
+        b"element face 1\nproperty list uchar int vertex_indices\nend_header\n" + b"\x00" * 64
+    )
+    off = "OFF\n1000000000 1000000000 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    for name, data in (("huge.ply", ply), ("huge.off", off)):
+        with pytest.raises(UnreadableMeshError):
+            load_mesh(write(tmp_path, name, data))
+
+
+def test_gltf_cannot_reference_files_outside_its_folder(tmp_path):
+    secret = tmp_path / "secret.bin"
+    secret.write_bytes(np.zeros(9, dtype=np.float32).tobytes())
+    (tmp_path / "up").mkdir()
+    gltf = (
+        '{"asset":{"version":"2.0"},"buffers":[{"uri":"../secret.bin","byteLength":36}],'
+        '"bufferViews":[{"buffer":0,"byteLength":36}],"accessors":[{"bufferView":0,'
+        '"componentType":5126,"count":3,"type":"VEC3"}],"meshes":[{"primitives":'
+        '[{"attributes":{"POSITION":0}}]}],"nodes":[{"mesh":0}],"scenes":[{"nodes":[0]}],"scene":0}'
+    )
+    with pytest.raises(UnreadableMeshError):
+        load_mesh(write(tmp_path / "up", "evil.gltf", gltf))
