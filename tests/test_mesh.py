@@ -268,6 +268,8 @@ def test_glb_keeps_uv_convention(tmp_path):
     mesh = load_mesh(path)
     np.testing.assert_allclose(mesh.corner_uvs, uv, atol=1e-6)
     assert mesh.texture.shape == (32, 32, 3)
+    # Same triangles as the welded OBJ arrays (GLB holds float32): same content hash.
+    assert mesh.content_hash == mesh_from_arrays(v, f).content_hash
 
 
 def test_explicit_texture_overrides_and_converts(tmp_path):
