@@ -13,8 +13,8 @@ import igl
 import numpy as np
 import pytest
 import torch
-import trimesh
 
+from hktex_engine import synthetic
 from hktex_engine.errors import DegenerateFacesError, NonManifoldError, QueryError
 from hktex_engine.geodesics import SurfaceTracer
 
@@ -22,7 +22,12 @@ from hktex_engine.geodesics import SurfaceTracer
 
 
 def grid_patch(n: int = 10, half: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Flat square [-half, half]^2 in z = 0, n x n quads split along alternating diagonals."""
+    """Flat square [-half, half]^2 in z = 0, n x n quads split along alternating diagonals.
+
+    Local rather than ``synthetic.grid_patch`` (one diagonal everywhere): alternating
+    diagonals give interior vertices of valence 4 and 8, so straight lines through vertices
+    meet fans of both kinds.
+    """
     x, y = np.meshgrid(np.linspace(-half, half, n + 1), np.linspace(-half, half, n + 1))
     V = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
     idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
@@ -38,25 +43,11 @@ def open_cylinder(
     radius: float = 0.5, sections: int = 24, rows: int = 8, height: float = 2.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Polygonal tube without caps (a developable surface with two boundary loops)."""
-    ang = 2 * np.pi * np.arange(sections) / sections
-    z = np.linspace(-height / 2, height / 2, rows + 1)
-    V = np.c_[
-        np.tile(radius * np.cos(ang), rows + 1),
-        np.tile(radius * np.sin(ang), rows + 1),
-        np.repeat(z, sections),
-    ]
-    i = np.arange(sections)
-    faces = []
-    for r in range(rows):
-        a, b = r * sections + i, r * sections + (i + 1) % sections
-        c, d = b + sections, a + sections
-        faces += [np.c_[a, b, c], np.c_[a, c, d]]
-    return V, np.concatenate(faces)
+    return synthetic.cylinder(sections, rows + 1, radius=radius, height=height)
 
 
 def icosphere(level: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    s = trimesh.creation.icosphere(subdivisions=level)
-    return np.asarray(s.vertices, dtype=np.float64), np.asarray(s.faces, dtype=np.int64)
+    return synthetic.icosphere(level)
 
 
 # ------------------------------------------------------------------ helpers
@@ -330,8 +321,16 @@ def test_vertex_crossing_leaves_with_half_the_cone_angle_on_each_side():
         to_v = V[vid] - p
         dist = np.linalg.norm(to_v)
         u = to_v / dist
-        res = tr.trace_full([fi], b[None], (u * (dist + 0.02))[None])
+        other = tr.project_to_tangent([fi], rng.normal(size=(1, 3)))
+        res = tr.trace_full([fi], b[None], (u * (dist + 0.02))[None], transport=other)
         q = res.points.numpy()[0]
+        # Transport through the vertex keeps the vector's signed angle to the path.
+        n0, n1 = tr.normals[fi].numpy(), tr.normals[int(res.face_ids[0])].numpy()
+        out_dir = res.vectors.numpy()[0]
+        got = res.transported.numpy()[0, 0]
+        before = np.arctan2(np.cross(u, other[0]) @ n0, u @ other[0])
+        after = np.arctan2(np.cross(out_dir, got) @ n1, out_dir @ got)
+        assert after == pytest.approx(before, abs=1e-9)
         assert np.linalg.norm(q - V[vid]) == pytest.approx(0.02, abs=1e-12)
         (a_in, a_out), theta = fan_polar_angles(V, F, vid, [p - V[vid], q - V[vid]])
         assert theta == pytest.approx(float(tr.angle_sum[vid]), abs=1e-12)
@@ -341,12 +340,15 @@ def test_vertex_crossing_leaves_with_half_the_cone_angle_on_each_side():
 # ------------------------------------------------------------------ robustness
 
 
-@pytest.mark.parametrize("mesh", ["grid", "cylinder", "sphere"])
+@pytest.mark.parametrize("mesh", ["grid", "cylinder", "sphere", "torus"])
 def test_centres_never_leave_the_surface(mesh):
     """Thousands of paths, many through vertices or into boundaries: all end valid."""
-    V, F = {"grid": grid_patch(6), "cylinder": open_cylinder(0.5, 12, 4), "sphere": icosphere(1)}[
-        mesh
-    ]
+    V, F = {
+        "grid": grid_patch(6),
+        "cylinder": open_cylinder(0.5, 12, 4),
+        "sphere": icosphere(1),
+        "torus": synthetic.torus(12, 6),
+    }[mesh]
     tr = SurfaceTracer(V, F)
     rng = np.random.default_rng(8)
     n = 4000
@@ -372,7 +374,7 @@ def test_centres_never_leave_the_surface(mesh):
     np.testing.assert_allclose(
         np.linalg.norm(res.vectors.numpy(), axis=1), np.linalg.norm(v, axis=1), atol=1e-12
     )
-    if mesh == "sphere":
+    if mesh in ("sphere", "torus"):
         assert not res.hit_boundary.any()
     # The end point really is on the surface: distance to the mesh is ~0.
     sq, _, _ = igl.point_mesh_squared_distance(res.points.numpy(), V, F)
@@ -457,3 +459,46 @@ def test_bad_input_raises_specific_errors():
         SurfaceTracer(np.random.default_rng(0).normal(size=(5, 3)), fan)
     with pytest.raises(DegenerateFacesError):
         SurfaceTracer(np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]]), np.array([[0, 1, 2]]))
+
+
+@pytest.mark.parametrize("mesh", ["grid", "sphere"])
+def test_face_orientation_does_not_matter(mesh):
+    """Flipping some faces' vertex order changes no end point, direction or transport."""
+    V, F = {"grid": grid_patch(6), "sphere": icosphere(2)}[mesh]
+    rng = np.random.default_rng(11)
+    flip = rng.random(len(F)) < 0.4
+    F2 = F.copy()
+    F2[flip] = F2[flip][:, ::-1]
+    tr1, tr2 = SurfaceTracer(V, F), SurfaceTracer(V, F2)
+    n = 1500
+    f, b = random_starts(tr1, rng, n)
+    b2 = np.where(flip[f][:, None], b[:, ::-1], b)
+    p = tr1.points(f, b)
+    np.testing.assert_allclose(tr2.points(f, b2), p, atol=1e-15)
+    target = V[rng.integers(0, len(V), n)]  # many paths through vertices
+    v = np.where((rng.random(n) < 0.5)[:, None], target - p, rng.normal(size=(n, 3)))
+    v = tr1.project_to_tangent(f, v) * rng.uniform(0, 2, n)[:, None]
+    other = rng.normal(size=(n, 3))
+    r1 = tr1.trace_full(f, b, v, transport=other)
+    r2 = tr2.trace_full(f, b2, v, transport=other)
+    np.testing.assert_allclose(r1.points.numpy(), r2.points.numpy(), atol=1e-9)
+    np.testing.assert_allclose(r1.vectors.numpy(), r2.vectors.numpy(), atol=1e-9)
+    np.testing.assert_allclose(r1.transported.numpy(), r2.transported.numpy(), atol=1e-9)
+
+
+def test_start_on_boundary_vertex_moves_inward_and_stops_outward():
+    V, F = grid_patch(4)
+    tr = SurfaceTracer(V, F)
+    corner_v = int(np.argmin(V[:, 0] + V[:, 1]))  # (-1, -1)
+    faces = np.nonzero((F == corner_v).any(1))[0]
+    f = np.full(4, faces[0])
+    b = np.zeros((4, 3))
+    b[:, list(F[faces[0]]).index(corner_v)] = 1.0
+    v = np.array([[0.3, 0.3, 0], [0.5, 0.01, 0], [-0.2, 0.0, 0], [0.1, -0.3, 0]])
+    res = tr.trace_full(f, b, v)
+    pts = res.points.numpy()
+    np.testing.assert_allclose(pts[:2], V[corner_v] + v[:2], atol=1e-12)
+    assert not res.hit_boundary.numpy()[:2].any()
+    np.testing.assert_allclose(pts[2:], V[[corner_v, corner_v]], atol=1e-12)
+    assert res.hit_boundary.numpy()[2:].all()
+    np.testing.assert_allclose(res.length.numpy()[2:], 0.0, atol=1e-15)
