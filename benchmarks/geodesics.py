@@ -1,6 +1,7 @@
 """Geodesic tracer throughput: paths per second for batches of kernel-centre moves.
 
-    python benchmarks/geodesics.py [--kernels 10000] [--repeats 3] [--out benchmarks/results]
+    python benchmarks/geodesics.py [--kernels 10000] [--repeats 3] [--threads 1]
+                                   [--out benchmarks/results]
 
 For each mesh (spot, merged by position and normalised so its bounding box side is 2; an
 icosphere of radius 1, the same scale) and each step length (0.001, 0.01, 0.05: typical
@@ -9,6 +10,9 @@ in random tangent directions, on the CPU and on CUDA when torch sees one. Report
 wall time over ``--repeats`` runs (after one warm-up), paths per second and crossing
 iterations (the longest path's number of face changes). A second table times one crossing iteration's worth of
 array operations in numpy and in torch, which is what the choice of torch rests on.
+
+``--threads`` sets torch's intra-op threads (default 1: on a shared 2-core machine, two
+threads spin against each other and the other tenants and ran 10-30x slower, measured).
 
 Writes ``geodesics.json`` and ``geodesics.md`` (machine, command, numbers).
 """
@@ -91,20 +95,22 @@ def _op_overhead(n: int, repeats: int = 200) -> dict:
     b = rng.random((n, 3))
 
     def np_iter():
-        rate = np.einsum("nij,nj->ni", G[f], d)
+        rate = np.matmul(G.take(f, axis=0), d[:, :, None])[:, :, 0]
         s = np.where(rate < 0, b / np.maximum(-rate, 1e-300), np.inf)
-        j = s.argmin(1)
-        out = b + s[np.arange(n), j][:, None] * rate
-        return out / out.sum(1, keepdims=True)
+        sm = s.min(1)
+        sm = np.where(np.isfinite(sm), sm, 0.0)
+        out = b + sm[:, None] * rate
+        return out / (out[:, 0] + out[:, 1] + out[:, 2])[:, None]
 
     Gt, ft, dt, bt = (torch.as_tensor(x) for x in (G, f, d, b))
 
     def torch_iter():
-        rate = torch.einsum("nij,nj->ni", Gt[ft], dt)
+        rate = torch.bmm(Gt.index_select(0, ft), dt.unsqueeze(2)).squeeze(2)
         s = torch.where(rate < 0, bt / (-rate).clamp_min(1e-300), torch.inf)
         sm, _ = s.min(1)
+        sm = torch.where(torch.isfinite(sm), sm, 0.0)
         out = bt + sm[:, None] * rate
-        return out / out.sum(1, keepdim=True)
+        return out / (out[:, 0] + out[:, 1] + out[:, 2])[:, None]
 
     res = {}
     for name, fn in (("numpy", np_iter), ("torch_cpu", torch_iter)):
@@ -141,6 +147,7 @@ def machine() -> dict:
         "torch": torch.__version__,
         "cpus": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
+        "load_average_1min": os.getloadavg()[0],
         "processor": platform.processor() or platform.machine(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
@@ -155,7 +162,8 @@ def write_results(out: Path, result: dict) -> None:
         "",
         f"Command: `{result['command']}`  ",
         f"Machine: {m['platform']}, {m['cpus']} CPUs ({m['torch_threads']} torch threads), "
-        f"torch {m['torch']}, CUDA: {m['cuda'] or 'none'}  ",
+        f"torch {m['torch']}, CUDA: {m['cuda'] or 'none'}, 1-min load average at the end "
+        f"{m['load_average_1min']:.1f} (a shared machine: timings are upper bounds)  ",
         f"Kernels per batch: {result['kernels']}; median of {result['repeats']} runs after a "
         "warm-up. Meshes in the normalised frame (bounding box side 2).",
         "",
@@ -186,8 +194,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--kernels", type=int, default=10000)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
     command = "python benchmarks/geodesics.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     result = run(args.kernels, args.repeats)
     result.update(
