@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, settings
 from schemathesis import checks as st_checks
 
 TOKEN = "tok-schemathesis"
-MAX_EXAMPLES = 25
+MAX_EXAMPLES = 20
 
 
 def test_checked_in_openapi_matches_the_app() -> None:
