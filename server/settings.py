@@ -36,6 +36,9 @@ class Settings(BaseSettings):
     kill_grace_seconds: float = 5.0
     max_attempts: int = Field(3, ge=1)
     enable_test_tasks: bool = Field(False, description="allow the internal 'sleep' job (tests)")
+    fit_eval_points: int | None = Field(
+        None, ge=100, description="surface points for a fit's final metrics (engine default)"
+    )
 
     # limits
     max_upload_bytes: int = 512 * 1024 * 1024

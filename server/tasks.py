@@ -138,7 +138,12 @@ def run_fit(ctx: TaskContext) -> Outcome:
     if job.task == "fit_uv":
         from hktex_engine.fit_uv import fit_uv
 
-        result = fit_uv(mesh, spectra, params, progress=ctx.progress, checkpoint_dir=checkpoints)
+        extra = {}
+        if ctx.settings.fit_eval_points is not None:
+            extra["eval_points"] = ctx.settings.fit_eval_points
+        result = fit_uv(
+            mesh, spectra, params, progress=ctx.progress, checkpoint_dir=checkpoints, **extra
+        )
     else:
         from hktex_engine.fit_multiview import fit_multiview
         from hktex_engine.views import load_views

@@ -30,11 +30,26 @@ from tests.server_support import (
 )
 
 
+def _backend(name, tmp_path):
+    settings = fast_settings(tmp_path, database_url(name, tmp_path))
+    return settings, migrated(settings)
+
+
 @pytest.fixture(params=BACKENDS)
 def backend(request, tmp_path):
-    url = database_url(request.param, tmp_path)
-    settings = fast_settings(tmp_path, url)
-    db = migrated(settings)
+    """Both databases: for claims and transitions, where the SQL differs."""
+    settings, db = _backend(request.param, tmp_path)
+    yield settings, db
+    db.dispose()
+
+
+@pytest.fixture(
+    params=["sqlite", pytest.param("postgres", marks=[pytest.mark.postgres, pytest.mark.slow])]
+)
+def proc_backend(request, tmp_path):
+    """Process-lifecycle tests: the database only stores what they exercise, so PostgreSQL
+    repeats them in the slow run only (keeps the default suite short)."""
+    settings, db = _backend(request.param, tmp_path)
     yield settings, db
     db.dispose()
 
@@ -83,8 +98,8 @@ def test_two_supervisor_processes_run_each_job_once(backend, tmp_path):
     assert runs == dict.fromkeys(ids, 1)
 
 
-def test_progress_and_success(backend):
-    settings, db = backend
+def test_progress_and_success(proc_backend):
+    settings, db = proc_backend
     jid = add_sleep_job(db, steps=4, seconds=0.4)
     with SupervisorInThread(settings):
         wait_for(lambda: _state(db, jid) == "succeeded", 30, "success")
@@ -95,8 +110,8 @@ def test_progress_and_success(backend):
     assert row.attempts == 1 and row.lease_token is None and row.finished_at >= row.started_at
 
 
-def test_cancel_running_job_stops_cooperatively(backend):
-    settings, db = backend
+def test_cancel_running_job_stops_cooperatively(proc_backend):
+    settings, db = proc_backend
     jid = add_sleep_job(db, steps=200, seconds=40)
     with SupervisorInThread(settings):
         wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
@@ -107,9 +122,9 @@ def test_cancel_running_job_stops_cooperatively(backend):
     assert job(db, jid).error == "cancelled by request"
 
 
-def test_cancel_deaf_job_is_terminated(backend):
+def test_cancel_deaf_job_is_terminated(proc_backend):
     """A task that never polls the flag is stopped by SIGTERM after the grace period."""
-    settings, db = backend
+    settings, db = proc_backend
     jid = add_sleep_job(db, steps=200, seconds=40, ignore_cancel=True)
     with SupervisorInThread(settings):
         wait_for(lambda: job(db, jid).pid, 30, "worker pid")
@@ -124,8 +139,8 @@ def test_cancel_queued_job_is_immediate(backend):
     assert jobqueue.request_cancel(db, "someone-else", jid) is None
 
 
-def test_killed_worker_and_supervisor_job_requeued_and_finished_elsewhere(backend, tmp_path):
-    settings, db = backend
+def test_killed_worker_and_supervisor_job_requeued_and_finished_elsewhere(proc_backend, tmp_path):
+    settings, db = proc_backend
     marker = tmp_path / "runs.txt"
     jid = add_sleep_job(db, steps=30, seconds=3, marker=str(marker))
     first = start_supervisor_process(settings)
@@ -144,9 +159,10 @@ def test_killed_worker_and_supervisor_job_requeued_and_finished_elsewhere(backen
     assert [line.split()[1] for line in marker.read_text().splitlines()] == ["1", "2"]
 
 
-def test_orphaned_worker_stops_and_job_runs_once_more(backend, tmp_path):
+@pytest.mark.slow
+def test_orphaned_worker_stops_and_job_runs_once_more(proc_backend, tmp_path):
     """Supervisor killed, worker alive: the worker notices and quits, never finishing twice."""
-    settings, db = backend
+    settings, db = proc_backend
     marker = tmp_path / "runs.txt"
     jid = add_sleep_job(db, steps=30, seconds=3, marker=str(marker))
     first = start_supervisor_process(settings)
@@ -172,8 +188,8 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def test_crashing_job_retried_then_failed(backend):
-    settings, db = backend
+def test_crashing_job_retried_then_failed(proc_backend):
+    settings, db = proc_backend
     jid = add_sleep_job(db, steps=1, seconds=0, crash=9, max_attempts=2)
     with SupervisorInThread(settings):
         wait_for(lambda: _state(db, jid) == "failed", 60, "failure")
@@ -182,8 +198,8 @@ def test_crashing_job_retried_then_failed(backend):
     assert "exited with code 9" in row.error and "gave up after 2" in row.error
 
 
-def test_bad_input_fails_once_without_retry(backend):
-    settings, db = backend
+def test_bad_input_fails_once_without_retry(proc_backend):
+    settings, db = proc_backend
     jid = add_sleep_job(db, steps=1, seconds=0, fail="no such thing")
     with SupervisorInThread(settings):
         wait_for(lambda: _state(db, jid) == "failed", 30, "failure")
