@@ -39,7 +39,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from hktex_engine.errors import DegenerateFacesError, MeshError, NonManifoldError, QueryError
+from hktex_engine.errors import (
+    DegenerateFacesError,
+    MeshError,
+    NonFiniteError,
+    NonManifoldError,
+    QueryError,
+)
 
 _F64 = torch.float64
 
@@ -95,6 +101,51 @@ def _unit(x: torch.Tensor) -> torch.Tensor:
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.linalg.cross(a, b, dim=-1)
+
+
+def _mesh_arrays(vertices: Any, faces: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float64 vertices and int64 faces from numpy or torch input."""
+    V = np.asarray(
+        vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices,
+        dtype=np.float64,
+    )
+    F = np.asarray(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces)
+    if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
+        raise MeshError(f"need (n,3) vertices and non-empty (m,3) faces, got {V.shape}, {F.shape}")
+    if not np.isfinite(V).all():
+        raise NonFiniteError("vertex coordinates contain NaN or infinity")
+    if not np.issubdtype(F.dtype, np.integer):
+        raise MeshError("face indices must be integers")
+    F = F.astype(np.int64)
+    if F.min() < 0 or F.max() >= len(V):
+        raise MeshError("face indices out of range")
+    return V, F
+
+
+def _face_tables(V: np.ndarray, F: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Corner positions, unit normals, unit edges, inward edge normals, barycentric
+    gradients and corner angles, per face (local edge ``j`` is opposite corner ``j`` and runs
+    from corner ``j+1`` to ``j+2``). Each face uses its own vertex order for its normal, so
+    no global orientation is needed."""
+    P = V[F]  # (m, 3, 3)
+    cr = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    area2 = np.linalg.norm(cr, axis=1)
+    scale = max(float(np.ptp(V, axis=0).max()), 1e-300)
+    bad = (area2 <= 1e-14 * scale**2) | (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2])
+    bad |= F[:, 0] == F[:, 2]
+    if bad.any():
+        raise DegenerateFacesError(f"{int(bad.sum())} faces have (near-)zero area")
+    normal = cr / area2[:, None]
+    nxt = P[:, [1, 2, 0]]  # corner i+1
+    prv = P[:, [2, 0, 1]]  # corner i+2
+    edge = prv - nxt
+    edge_len = np.linalg.norm(edge, axis=2)
+    edge_unit = edge / edge_len[..., None]
+    inward = np.cross(normal[:, None, :], edge_unit)  # in the plane, towards corner j
+    grad = inward * (edge_len / area2[:, None])[..., None]  # gradient of barycentric j
+    e1, e2 = nxt - P, prv - P
+    corner = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=2), (e1 * e2).sum(2))
+    return P, normal, edge_unit, inward, grad, corner
 
 
 def _edge_adjacency(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
@@ -159,44 +210,12 @@ class SurfaceTracer:
         device: str | torch.device | None = None,
         max_steps: int = 20_000,
     ) -> None:
-        V = np.asarray(
-            vertices.detach().cpu().numpy() if isinstance(vertices, torch.Tensor) else vertices,
-            dtype=np.float64,
-        )
-        F = np.asarray(faces.detach().cpu().numpy() if isinstance(faces, torch.Tensor) else faces)
-        if V.ndim != 2 or V.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3 or len(F) == 0:
-            raise MeshError(
-                f"need (n,3) vertices and non-empty (m,3) faces, got {V.shape}, {F.shape}"
-            )
-        if not np.isfinite(V).all():
-            raise MeshError("vertex coordinates contain NaN or infinity")
-        F = F.astype(np.int64)
-        if F.min() < 0 or F.max() >= len(V):
-            raise MeshError("face indices out of range")
+        V, F = _mesh_arrays(vertices, faces)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.max_steps = int(max_steps)
         self.n_vertices = int(V.shape[0])
         self.n_faces = int(F.shape[0])
-
-        P = V[F]  # (m, 3, 3)
-        cr = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-        area2 = np.linalg.norm(cr, axis=1)
-        scale = max(float(np.ptp(V, axis=0).max()), 1e-300)
-        bad = (area2 <= 1e-14 * scale**2) | (F[:, 0] == F[:, 1]) | (F[:, 1] == F[:, 2])
-        bad |= F[:, 0] == F[:, 2]
-        if bad.any():
-            raise DegenerateFacesError(f"{int(bad.sum())} faces have (near-)zero area")
-        normal = cr / area2[:, None]
-        nxt = P[:, [1, 2, 0]]  # corner i+1
-        prv = P[:, [2, 0, 1]]  # corner i+2
-        edge = prv - nxt  # local edge j runs from corner j+1 to corner j+2
-        edge_len = np.linalg.norm(edge, axis=2)
-        edge_unit = edge / edge_len[..., None]
-        inward = np.cross(normal[:, None, :], edge_unit)  # points at corner j, in the plane
-        grad = inward * (edge_len / area2[:, None])[..., None]  # grad of barycentric j
-        e1, e2 = nxt - P, prv - P
-        corner = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=2), (e1 * e2).sum(2))
-
+        P, normal, edge_unit, inward, grad, corner = _face_tables(V, F)
         nbr, nbr_edge = _edge_adjacency(F, len(V))
         cmap = _corner_map(F, nbr, nbr_edge)
         angle_sum = np.bincount(F.ravel(), weights=corner.ravel(), minlength=len(V))
@@ -204,8 +223,7 @@ class SurfaceTracer:
         bf, bj = np.nonzero(nbr < 0)
         on_boundary[F[bf, (bj + 1) % 3]] = True
         on_boundary[F[bf, (bj + 2) % 3]] = True
-        valence = np.bincount(F.ravel(), minlength=len(V))
-        self.max_valence = int(valence.max())
+        self.max_valence = int(np.bincount(F.ravel(), minlength=len(V)).max())
         self.has_boundary = bool(on_boundary.any())
 
         def t(x: np.ndarray, dtype: torch.dtype = _F64) -> torch.Tensor:
@@ -470,66 +488,20 @@ class SurfaceTracer:
         c: torch.Tensor,
         dd: torch.Tensor,
     ) -> None:
-        """Leave the vertex at corner ``c`` of face ``f`` by the equal-angle rule.
-
-        Polar angles around the vertex are measured from ``f``'s edge towards corner ``c+1``,
-        turning towards corner ``c+2`` and on through the fan. A path passing through leaves
-        at ``polar(-d) + Theta/2`` (mod the cone angle ``Theta``): equal angles both sides.
-        A path that has not moved yet (it *starts* at the vertex, with a direction outside
-        ``f``'s corner) leaves at ``polar(d)`` read in ``f``'s plane, so a centre parked on a
-        vertex can move off it. Paths passing through a boundary vertex stop there.
-        """
-        n = idx.shape[0]
-        rows = torch.arange(n, device=self.device)
-        vtx = self.faces[f, c]
-        theta = self.angle_sum[vtx]
-        beta0 = self.corner_angle[f, c]
-        boundary = self.on_boundary[vtx]
-        fresh = st.remaining[idx] == st.length[idx]
-        P = self.corners[f]
-        n_f = self.normals[f]
-        e1 = _unit(P[rows, (c + 1) % 3] - P[rows, c])
-        ref = torch.where(fresh[:, None], dd, -dd)
-        a = torch.atan2(_dot(_cross(e1, ref), n_f), _dot(e1, ref))  # in (-pi, pi]
-        through = torch.remainder(torch.where(a < 0, a + theta, a) + 0.5 * theta, theta)
-        start = torch.where(boundary, a, torch.remainder(a, theta))
-        # Start at an open fan's vertex: turn the short way, clockwise for negative angles.
-        cw = fresh & boundary & (a < 0)
-        r = torch.where(fresh, torch.where(cw, beta0 - a, start), through)
-        sgn = torch.where(cw, -1, 1)
+        """Leave the vertex at corner ``c`` of face ``f``; see :meth:`_exit_angle` for where."""
+        r, sgn, stop = self._exit_angle(st, idx, f, c, dd)
         sgn0 = sgn.clone()
-        stop = boundary & ~fresh
-        walk = ~stop
-        h, ch = f.clone(), c.clone()
-        todo = walk.clone()
-        for _ in range(self.max_valence + 1):  # bounded by the fan size, vectorised over paths
-            beta = self.corner_angle[h, ch]
-            todo = todo & (r > beta)
-            if not bool(todo.any()):
-                break
-            t_i = torch.nonzero(todo).squeeze(1)
-            hh, cc, ss = h[t_i], ch[t_i], sgn[t_i]
-            opp = torch.where(ss > 0, (cc + 1) % 3, (cc + 2) % 3)  # edge we leave over
-            far = torch.where(ss > 0, (cc + 2) % 3, (cc + 1) % 3)  # its far corner
-            g = self.nbr[hh, opp]
-            ok = g >= 0  # false only where an open fan ends: the direction leaves the surface
-            stop[t_i[~ok]] = True
-            todo[t_i[~ok]] = False
-            t_i, hh, cc, opp, far, g = t_i[ok], hh[ok], cc[ok], opp[ok], far[ok], g[ok]
-            r[t_i] = r[t_i] - beta[t_i]
-            cm = self.cmap[hh, opp]
-            nc = cm.gather(1, cc[:, None]).squeeze(1)
-            nfar = cm.gather(1, far[:, None]).squeeze(1)
-            h[t_i], ch[t_i] = g, nc
-            sgn[t_i] = torch.where(nfar == (nc + 1) % 3, 1, -1)
-        onehot_f = torch.zeros(n, 3, dtype=_F64, device=self.device).scatter_(1, c[:, None], 1.0)
+        h, ch, sgn, r, stop = self._walk_fan(f, c, r, sgn, stop)
         if bool(stop.any()):
-            self._stop(st, idx[stop], onehot_f[stop])
-        go = ~stop
-        if not bool(go.any()):
-            return
-        idx, h, ch, sgn, r, dd, n_f = idx[go], h[go], ch[go], sgn[go], r[go], dd[go], n_f[go]
-        same_hand = (sgn * sgn0[go]).to(_F64)  # h's normal agrees with f's across the fan
+            sx = _nonzero(stop)
+            onehot = torch.zeros(sx.shape[0], 3, dtype=_F64, device=self.device)
+            self._stop(st, _take(idx, sx), onehot.scatter_(1, _take(c, sx)[:, None], 1.0))
+            go = _nonzero(~stop)
+            idx, f, dd, h, ch, sgn, sgn0, r = (
+                _take(x, go) for x in (idx, f, dd, h, ch, sgn, sgn0, r)
+            )
+            if idx.numel() == 0:
+                return
         n = idx.shape[0]
         rows = torch.arange(n, device=self.device)
         phi = torch.minimum(r.clamp_min(0), self.corner_angle[h, ch])
@@ -541,25 +513,98 @@ class SurfaceTracer:
         u_e = _unit(Q[rows, end_c] - apex)
         w = _unit(u_e - _dot(u_e, u_s)[:, None] * u_s)
         out = torch.cos(phi)[:, None] * u_s + torch.sin(phi)[:, None] * w
-        st.d[idx] = out
+        st.d.index_copy_(0, idx, out)
         if st.extra is not None:
             # Transport keeps each vector's angle to the path: decompose against (d, n_f x d)
             # coming in, rebuild against (out, axis x out) going out, where the axis is the
             # normal of h made to agree with f's across the fan (so both frames have the same
             # handedness whatever the faces' orientation).
-            xs = st.extra[idx]
-            side_in = _cross(n_f, dd)[:, None]
-            axis = same_hand[:, None] * self.normals[h]
+            xs = _take(st.extra, idx)
+            side_in = _cross(_take(self.normals, f), dd)[:, None]
+            axis = (sgn * sgn0).to(_F64)[:, None] * _take(self.normals, h)
             side_out = _cross(axis, out)[:, None]
-            xc = _dot(xs, dd[:, None])[..., None]
-            xsd = _dot(xs, side_in)[..., None]
-            st.extra[idx] = xc * out[:, None] + xsd * side_out
-        st.face[idx] = h
-        st.b[idx] = torch.zeros(n, 3, dtype=_F64, device=self.device).scatter_(1, ch[:, None], 1.0)
+            along = _dot(xs, dd[:, None])[..., None]
+            across = _dot(xs, side_in)[..., None]
+            st.extra.index_copy_(0, idx, along * out[:, None] + across * side_out)
+        st.face.index_copy_(0, idx, h)
+        onehot = torch.zeros(n, 3, dtype=_F64, device=self.device).scatter_(1, ch[:, None], 1.0)
+        st.b.index_copy_(0, idx, onehot)
         # Leaving a vertex, only the opposite edge may be the exit.
-        st.blocked[idx] = torch.ones(n, 3, dtype=torch.bool, device=self.device).scatter_(
-            1, ch[:, None], False
-        )
+        st.blocked.index_copy_(0, idx, onehot == 0)
+
+    def _exit_angle(
+        self,
+        st: _Paths,
+        idx: torch.Tensor,
+        f: torch.Tensor,
+        c: torch.Tensor,
+        dd: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Polar angle to leave at, turning sense, and which paths stop at the vertex.
+
+        Polar angles around the vertex are measured from ``f``'s edge towards corner ``c+1``,
+        turning towards corner ``c+2`` (sense +1) and on through the fan. A path passing
+        through leaves at ``polar(-d) + Theta/2`` (mod the cone angle ``Theta``): equal angles
+        on both sides. A path that has not moved yet (it *starts* at the vertex, its direction
+        outside ``f``'s corner) leaves at ``polar(d)`` read in ``f``'s plane, turning the short
+        way on an open fan, so a centre parked on a vertex can move off it. Paths passing
+        through a boundary vertex stop there.
+        """
+        rows = torch.arange(idx.shape[0], device=self.device)
+        vtx = self.faces[f, c]
+        theta = self.angle_sum[vtx]
+        boundary = self.on_boundary[vtx]
+        fresh = _take(st.remaining, idx) == _take(st.length, idx)
+        P = self.corners[f]
+        e1 = _unit(P[rows, (c + 1) % 3] - P[rows, c])
+        ref = torch.where(fresh[:, None], dd, -dd)
+        a = torch.atan2(_dot(_cross(e1, ref), _take(self.normals, f)), _dot(e1, ref))
+        through = torch.remainder(torch.where(a < 0, a + theta, a) + 0.5 * theta, theta)
+        start = torch.where(boundary, a, torch.remainder(a, theta))
+        cw = fresh & boundary & (a < 0)  # start on an open fan, turning clockwise
+        r = torch.where(fresh, torch.where(cw, self.corner_angle[f, c] - a, start), through)
+        sgn = torch.where(cw, -1, 1)
+        return r, sgn, boundary & ~fresh
+
+    def _walk_fan(
+        self,
+        f: torch.Tensor,
+        c: torch.Tensor,
+        r: torch.Tensor,
+        sgn: torch.Tensor,
+        stop: torch.Tensor,
+    ) -> tuple[torch.Tensor, ...]:
+        """Turn ``r`` radians around the vertex from face ``f``, face by face.
+
+        Returns the face ``h`` and the vertex's corner ``ch`` there, the turning sense in
+        ``h``'s own corner order, the angle left inside ``h`` (from the edge we entered by),
+        and ``stop`` extended by paths whose turn runs off an open fan (pointing off the
+        surface). The loop is over fan faces, at most the largest valence, each step
+        vectorised over all paths.
+        """
+        h, ch, sgn, r, stop = f.clone(), c.clone(), sgn.clone(), r.clone(), stop.clone()
+        todo = ~stop
+        for _ in range(self.max_valence + 1):
+            beta = self.corner_angle[h, ch]
+            todo = todo & (r > beta)
+            if not bool(todo.any()):
+                break
+            t_i = _nonzero(todo)
+            hh, cc, ss = h[t_i], ch[t_i], sgn[t_i]
+            opp = torch.where(ss > 0, (cc + 1) % 3, (cc + 2) % 3)  # edge we leave over
+            far = torch.where(ss > 0, (cc + 2) % 3, (cc + 1) % 3)  # its far corner
+            g = self.nbr[hh, opp]
+            ok = g >= 0  # false only where an open fan ends
+            stop[t_i[~ok]] = True
+            todo[t_i[~ok]] = False
+            t_i, hh, cc, opp, far, g = t_i[ok], hh[ok], cc[ok], opp[ok], far[ok], g[ok]
+            r[t_i] = r[t_i] - beta[t_i]
+            cm = self.cmap[hh, opp]
+            nc = cm.gather(1, cc[:, None]).squeeze(1)
+            nfar = cm.gather(1, far[:, None]).squeeze(1)
+            h[t_i], ch[t_i] = g, nc
+            sgn[t_i] = torch.where(nfar == (nc + 1) % 3, 1, -1)
+        return h, ch, sgn, r, stop
 
 
 @dataclass
