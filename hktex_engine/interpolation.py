@@ -81,9 +81,9 @@ class _InterpolatedRows(torch.autograd.Function):
         ctx.out_dtype = out_dtype
         out = torch.empty((verts.shape[0], evecs.shape[2]), dtype=out_dtype, device=bary.device)
         for sl in _chunks(verts.shape[0], CHUNK_ROWS):
-            rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3, 4, K)
-            coeff = bary[sl, :, None] * weights[sl, None, :]  # (c, 3, 4)
-            out[sl] = torch.einsum("uvck,uvc->uk", rows, coeff.to(out_dtype))
+            rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3 * 4, K)
+            coeff = (bary[sl, :, None] * weights[sl, None, :]).to(out_dtype)  # (c, 3, 4)
+            out[sl] = torch.bmm(coeff.reshape(rows.shape[0], 1, -1), rows).squeeze(1)
         return out
 
     @staticmethod
@@ -95,7 +95,7 @@ class _InterpolatedRows(torch.autograd.Function):
         if need_b or need_w:
             for sl in _chunks(verts.shape[0], CHUNK_ROWS):
                 rows = _gather_rows(evecs, verts[sl], nodes[sl], ctx.out_dtype)
-                t = torch.einsum("uvck,uk->uvc", rows, grad_out[sl])  # (c, 3, 4)
+                t = torch.bmm(rows, grad_out[sl, :, None]).view(-1, 3, weights.shape[1])
                 if need_b:
                     grad_b[sl] = torch.einsum("uvc,uc->uv", t, weights[sl].to(t.dtype))
                 if need_w:
@@ -106,8 +106,15 @@ class _InterpolatedRows(torch.autograd.Function):
 def _gather_rows(
     evecs: torch.Tensor, verts: torch.Tensor, nodes: torch.Tensor, dtype: torch.dtype
 ) -> torch.Tensor:
-    """``evecs[verts[u, v], nodes[u, c], :]`` as a (U, 3, 4, K) block in ``dtype``."""
-    return evecs[verts[:, :, None], nodes[:, None, :]].to(dtype)
+    """``evecs[verts[u, v], nodes[u, c], :]`` as a (U, 3 * 4, K) block in ``dtype``.
+
+    One ``index_select`` on the (n * G, K) view: measured faster than two-tensor advanced
+    indexing on the CPU.
+    """
+    n_nodes, k = evecs.shape[1], evecs.shape[2]
+    flat = (verts[:, :, None] * n_nodes + nodes[:, None, :]).reshape(-1)
+    rows = evecs.reshape(-1, k).index_select(0, flat)
+    return rows.view(verts.shape[0], 3 * nodes.shape[1], k).to(dtype)
 
 
 class SpectralField:
@@ -191,9 +198,11 @@ class SpectralField:
         """
         verts = self.faces[face_ids]
         b = bary.to(self.dtype)
-        out = self.evecs[verts[:, 0]].to(self.dtype) * b[:, 0, None, None]
-        out = out + self.evecs[verts[:, 1]].to(self.dtype) * b[:, 1, None, None]
-        return out + self.evecs[verts[:, 2]].to(self.dtype) * b[:, 2, None, None]
+        out = self.evecs.index_select(0, verts[:, 0]).to(self.dtype) * b[:, 0, None, None]
+        for v in (1, 2):
+            rows = self.evecs.index_select(0, verts[:, v]).to(self.dtype)
+            out = out + rows * b[:, v, None, None]
+        return out
 
     def embedding_at(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         """Biharmonic embedding interpolated barycentrically: (P, K_iso - 1)."""

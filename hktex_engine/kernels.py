@@ -461,7 +461,8 @@ class HeatKernelModel(nn.Module):
             local = cand
         phi_y = self.field.node_values(face_ids, bary)  # (P, G, K)
         # coef_j . Phi_y[g] for every node g, then the kernel's own 4 nodes (see module doc).
-        dots = torch.bmm(coef[local], phi_y.transpose(1, 2))  # (P, C, G)
+        picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
+        dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
         h = (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
         emb_y = self.field.embedding_at(face_ids, bary)
         d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once

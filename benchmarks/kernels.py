@@ -1,0 +1,314 @@
+"""Kernel evaluation benchmark: query throughput, KNN backends, memory for a million points.
+
+    python benchmarks/kernels.py [--kernels 10000] [--queries 100000] [--million 1000000]
+
+Setup: a torus of ~10k vertices with the reference grid shape (7 angles x 7 anisotropies,
+K = 256 eigenpairs per node, K_iso = 65). The grid's eigenvectors are random numbers of the
+right shape and scale (computing 49 real K = 256 bases would take many minutes of the shared
+CPU, and the cost of an evaluation does not depend on the values); the isotropic spectrum,
+hence the biharmonic embedding the KNN searches, is real. Kernels: 10k random centres with
+random attributes in their ranges, reference K_s = 100, K_c = 10.
+
+Writes benchmarks/results/kernels.json and .md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from hktex_engine.config import KernelConfig, SpectralConfig  # noqa: E402
+from hktex_engine.eigensolver import eigs_cold  # noqa: E402
+from hktex_engine.hkt import hkt_bytes  # noqa: E402
+from hktex_engine.kernels import HeatKernelModel, KernelSet  # noqa: E402
+from hktex_engine.knn import CandidateSearch  # noqa: E402
+from hktex_engine.operators import cotangent_stiffness, lumped_mass  # noqa: E402
+from hktex_engine.query import AlbedoQuery  # noqa: E402
+from hktex_engine.sampling import sample_surface  # noqa: E402
+from hktex_engine.spectra import Spectra  # noqa: E402
+from hktex_engine.synthetic import torus  # noqa: E402
+
+
+def peak_rss_reset() -> None:
+    """Reset the kernel's peak-RSS counter (VmHWM) of this process."""
+    Path("/proc/self/clear_refs").write_text("5")
+
+
+def rss_mb(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def build_spectra(config: SpectralConfig, rng: np.random.Generator) -> Spectra:
+    v, f = torus(128, 80)
+    v = v - v.mean(axis=0)
+    v = v * (2.0 / (v.max(axis=0) - v.min(axis=0)).max())
+    mass = lumped_mass(v, f)
+    iso_vals, iso_vecs = eigs_cold(cotangent_stiffness(v, f), mass, config.k_iso)
+    n, g = v.shape[0], config.angles * len(config.anisotropies)
+    scale = 1.0 / np.sqrt(mass.sum())  # M-normalised functions have this typical size
+    evecs = (rng.standard_normal((n, g, config.k), dtype=np.float32) * scale).astype(np.float32)
+    evals = np.sort(rng.uniform(0, 3000, (g, config.k)), axis=1)
+    return Spectra(
+        vertices=v,
+        faces=f,
+        mass=mass,
+        grid_theta=np.linspace(0, np.pi, config.angles),
+        grid_eta=np.asarray(config.anisotropies),
+        evals=evals,
+        evecs=evecs,
+        iso_evals=np.maximum(iso_vals, 0),
+        iso_evecs=iso_vecs,
+        face_frames=np.tile([1.0, 0.0, 0.0], (f.shape[0], 1)),
+        config=config,
+        mesh_hash="benchmark-torus",
+    )
+
+
+def random_kernelset(spectra: Spectra, n: int, rng: np.random.Generator) -> KernelSet:
+    face_ids, bary = sample_surface(spectra.vertices, spectra.faces, n, rng)
+    return KernelSet(
+        face_ids=face_ids,
+        barycentrics=bary,
+        theta=rng.uniform(0, np.pi, n),
+        eta=1 + 99 * rng.uniform(size=n),
+        threshold=rng.uniform(0.9, 1.0 - 1e-4, n),
+        sharpness=10 + 40 * rng.uniform(size=n),
+        colors=rng.uniform(-0.5, 0.5, (n, 3)),
+        base_color=rng.uniform(0.2, 0.8, 3),
+        kernel_config=KernelConfig(),
+        mesh_hash=spectra.mesh_hash,
+        config_hash=spectra.config_hash,
+    )
+
+
+def timed(fn, repeat: int = 1) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeat):
+        start = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - start)
+    return best, out
+
+
+def bench_knn(query: AlbedoQuery, spectra: Spectra, n_q: int, k: int, rng) -> dict:
+    centres = query.model._centre_emb
+    f, b = sample_surface(spectra.vertices, spectra.faces, n_q, rng)
+    q = query.field.embedding_at(torch.as_tensor(f), torch.as_tensor(b, dtype=torch.float32))
+    out = {}
+    results = {}
+    for backend in ("faiss", "torch"):
+        build_s, search = timed(lambda backend=backend: CandidateSearch(centres, backend))
+        search_s, idx = timed(lambda search=search: search.search(q, k))
+        out[backend] = {"build_s": round(build_s, 4), "search_s": round(search_s, 3)}
+        results[backend] = idx
+    same = (results["faiss"] == results["torch"]).float().mean().item()
+    out["identical_fraction"] = round(same, 5)
+    out["queries"], out["centres"], out["k"] = n_q, int(centres.shape[0]), k
+    return out
+
+
+def bench_pair_eval(query: AlbedoQuery, p: int, rng) -> dict:
+    """The chosen batched-matmul pair evaluation against a direct (P, K_s, 4, K) gather."""
+    model, field = query.model, query.field
+    f, b = sample_surface(field.spectra.vertices, field.spectra.faces, p, rng)
+    f, b = torch.as_tensor(f), torch.as_tensor(b, dtype=torch.float32)
+    cand = model._knn.search(field.embedding_at(f, b), model.config.k_search)
+    coef, _, nodes, weights, _ = model._terms
+
+    def bmm_path():
+        phi_y = field.node_values(f, b)
+        dots = torch.bmm(coef[cand], phi_y.transpose(1, 2))
+        return (dots.gather(2, nodes[cand]) * weights[cand]).sum(dim=2)
+
+    def gather_path():
+        phi_y = field.node_values(f, b)  # (P, G, K)
+        rows = phi_y[torch.arange(p)[:, None, None], nodes[cand]]  # (P, K_s, 4, K)
+        interp = (rows * weights[cand][..., None]).sum(dim=2)
+        return (interp * coef[cand]).sum(dim=2)
+
+    with torch.no_grad():
+        t_bmm, h1 = timed(bmm_path, 3)
+        t_gather, h2 = timed(gather_path, 3)
+    err = float((h1 - h2).abs().max() / h1.abs().max())
+    return {
+        "points": p,
+        "bmm_s": round(t_bmm, 4),
+        "gather_s": round(t_gather, 4),
+        "max_rel_diff": err,
+    }
+
+
+def bench_train_step(query: AlbedoQuery, ks: KernelSet, p: int, rng) -> dict:
+    """One forward + backward with grad for all kernel parameters (what a fit step costs)."""
+    model = HeatKernelModel.from_kernelset(ks, query.field)
+    f, b = sample_surface(query.field.spectra.vertices, query.field.spectra.faces, p, rng)
+    target = torch.rand(p, 3)
+
+    def step():
+        model.zero_grad()
+        loss = ((model.albedo(f, b) - target) ** 2).mean()
+        loss.backward()
+
+    step()  # build the KNN index once
+    t, _ = timed(step, 2)
+    return {"points": p, "forward_backward_s": round(t, 3)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kernels", type=int, default=10_000)
+    ap.add_argument("--queries", type=int, default=100_000)
+    ap.add_argument("--million", type=int, default=1_000_000)
+    ap.add_argument("--k", type=int, default=256)
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    config = SpectralConfig(k=args.k)
+    t0 = time.perf_counter()
+    spectra = build_spectra(config, rng)
+    ks = random_kernelset(spectra, args.kernels, rng)
+    setup_s = time.perf_counter() - t0
+    t_init, query = timed(lambda: AlbedoQuery(spectra, ks, device="cpu"))
+    res: dict = {
+        "command": "python " + " ".join(sys.argv),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "cpu_count": __import__("os").cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__,
+            "device": "cpu",
+        },
+        "setup": {
+            "vertices": int(spectra.vertices.shape[0]),
+            "faces": int(spectra.faces.shape[0]),
+            "grid_nodes": int(spectra.evecs.shape[1]),
+            "k": args.k,
+            "k_iso": config.k_iso,
+            "evecs_mb": round(spectra.evecs.nbytes / 2**20, 1),
+            "kernels": args.kernels,
+            "k_search": ks.kernel_config.k_search,
+            "k_blend": ks.kernel_config.k_blend,
+            "setup_s": round(setup_s, 2),
+            "query_state_build_s": round(t_init, 3),
+            "chunk_points": query.chunk_points,
+            "bytes_per_point_estimate": query.bytes_per_point(),
+        },
+    }
+    print(json.dumps(res["setup"]), flush=True)
+    res["knn"] = bench_knn(query, spectra, args.queries, ks.kernel_config.k_search, rng)
+    print("knn", json.dumps(res["knn"]), flush=True)
+    res["pair_eval"] = bench_pair_eval(query, 1024, rng)
+    print("pair_eval", json.dumps(res["pair_eval"]), flush=True)
+    res["train_step"] = bench_train_step(query, ks, 512, rng)
+    print("train_step", json.dumps(res["train_step"]), flush=True)
+
+    f, b = sample_surface(spectra.vertices, spectra.faces, args.queries, rng)
+    t_q, colors = timed(lambda: query.colors(f, b))
+    res["query"] = {
+        "points": args.queries,
+        "seconds": round(t_q, 2),
+        "points_per_s": round(args.queries / t_q),
+    }
+    print("query", json.dumps(res["query"]), flush=True)
+
+    compact, full = hkt_bytes(ks), hkt_bytes(ks, compact=False)
+    from hktex_engine.hkt import _stored_arrays
+
+    stored = _stored_arrays(ks, compact=True)
+    floats = {k: v.astype(np.float64) for k, v in stored.items() if k != "face_ids"}
+    ks16 = KernelSet(**{**ks.__dict__, **floats})
+    diff = np.abs(
+        AlbedoQuery(spectra, ks16, device="cpu").colors(f[:20000], b[:20000]) - colors[:20000]
+    )
+    res["hkt"] = {
+        "compact_raw_bytes": compact["raw"],
+        "compact_zip_bytes": compact["zip"],
+        "float32_raw_bytes": full["raw"],
+        "float32_zip_bytes": full["zip"],
+        "compact_vs_float32_max_abs_color_diff": float(diff.max()),
+        "compact_vs_float32_mean_abs_color_diff": float(diff.mean()),
+    }
+    print("hkt", json.dumps(res["hkt"]), flush=True)
+
+    if args.million:
+        fm, bm = sample_surface(spectra.vertices, spectra.faces, args.million, rng)
+        base_mb = rss_mb("VmRSS")
+        peak_rss_reset()
+        t_m, _ = timed(lambda: query.colors(fm, bm))
+        peak = rss_mb("VmHWM")
+        res["million"] = {
+            "points": args.million,
+            "seconds": round(t_m, 1),
+            "points_per_s": round(args.million / t_m),
+            "rss_before_mb": round(base_mb, 1),
+            "peak_rss_mb": round(peak, 1),
+            "peak_above_before_mb": round(peak - base_mb, 1),
+            "inputs_and_output_mb": round((fm.nbytes + bm.nbytes + args.million * 12) / 2**20, 1),
+        }
+        print("million", json.dumps(res["million"]), flush=True)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "kernels.json").write_text(json.dumps(res, indent=1))
+    (args.out / "kernels.md").write_text(render_md(res))
+
+
+def render_md(res: dict) -> str:
+    s, k, q = res["setup"], res["knn"], res["query"]
+    lines = [
+        "# Kernel evaluation benchmark (benchmarks/kernels.py)",
+        "",
+        f"Command: `{res['command']}`  ",
+        f"Machine: {res['machine']['platform']}, {res['machine']['cpu_count']} CPU cores "
+        f"(shared with other jobs), torch {res['machine']['torch']}, {res['machine']['torch_threads']} "
+        "threads, CPU only.",
+        "",
+        f"Setup: torus, {s['vertices']} vertices; grid {s['grid_nodes']} nodes x K = {s['k']} "
+        f"(random eigenvectors of the right shape, {s['evecs_mb']} MB float32; real K_iso = "
+        f"{s['k_iso']} isotropic spectrum); {s['kernels']} kernels, K_s = {s['k_search']}, "
+        f"K_c = {s['k_blend']}; chunk {s['chunk_points']} points.",
+        "",
+        "| measure | value |",
+        "|---|---|",
+        f"| query throughput ({q['points']} points) | {q['points_per_s']} points/s ({q['seconds']} s) |",
+        f"| query state build (coefficients + KNN index) | {s['query_state_build_s']} s |",
+        f"| KNN {k['centres']} centres x {k['queries']} queries, k = {k['k']}: faiss IndexFlatL2 | "
+        f"{k['faiss']['search_s']} s (build {k['faiss']['build_s']} s) |",
+        f"| same, torch addmm + topk (chunked) | {k['torch']['search_s']} s (build {k['torch']['build_s']} s) |",
+        f"| faiss and torch neighbour lists identical | {k['identical_fraction'] * 100:.3f} % of entries |",
+        f"| pair evaluation, {res['pair_eval']['points']} points: batched matmul | {res['pair_eval']['bmm_s']} s |",
+        f"| same, direct (P, K_s, 4, K) gather | {res['pair_eval']['gather_s']} s |",
+        f"| one training forward+backward, {res['train_step']['points']} points | "
+        f"{res['train_step']['forward_backward_s']} s |",
+        f"| .hkt compact: raw / zip bytes | {res['hkt']['compact_raw_bytes']} / {res['hkt']['compact_zip_bytes']} |",
+        f"| .hkt float32: raw / zip bytes | {res['hkt']['float32_raw_bytes']} / {res['hkt']['float32_zip_bytes']} |",
+        f"| compact vs float32 colour difference (max / mean) | "
+        f"{res['hkt']['compact_vs_float32_max_abs_color_diff']:.2e} / "
+        f"{res['hkt']['compact_vs_float32_mean_abs_color_diff']:.2e} |",
+    ]
+    if "million" in res:
+        m = res["million"]
+        lines += [
+            f"| {m['points']} points: time | {m['seconds']} s ({m['points_per_s']} points/s) |",
+            f"| {m['points']} points: peak RSS / above the warm query state | "
+            f"{m['peak_rss_mb']} MB / {m['peak_above_before_mb']} MB (inputs + output "
+            f"{m['inputs_and_output_mb']} MB) |",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
