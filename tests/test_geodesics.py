@@ -527,3 +527,22 @@ def test_spot_matches_potpourri3d(shared_data):
     )
     np.testing.assert_allclose(res.points.numpy(), ref, atol=1e-9)
     assert_valid_bary(tr, res.face_ids, res.bary)
+
+
+def test_walking_back_returns_start_point_and_vector():
+    """exp then exp of the reversed end tangent retraces the path (incl. through vertices)."""
+    V, F = icosphere(2)
+    tr = SurfaceTracer(V, F)
+    rng = np.random.default_rng(13)
+    n = 1000
+    f, b = random_starts(tr, rng, n)
+    p = tr.points(f, b)
+    target = V[rng.integers(0, len(V), n)]
+    v = np.where((rng.random(n) < 0.5)[:, None], target - p, rng.normal(size=(n, 3)))
+    v = tr.project_to_tangent(f, v) * rng.uniform(0.1, 2.0, n)[:, None]
+    w = tr.project_to_tangent(f, rng.normal(size=(n, 3)))
+    there = tr.trace_full(f, b, v, transport=w)
+    back = tr.trace_full(there.face_ids, there.bary, -there.vectors, transport=there.transported)
+    np.testing.assert_allclose(back.points.numpy(), p, atol=1e-9)
+    np.testing.assert_allclose(back.vectors.numpy(), -v, atol=1e-9)
+    np.testing.assert_allclose(back.transported.numpy()[:, 0], w, atol=1e-9)
