@@ -206,8 +206,8 @@ def fit_uv(
     init = initial_kernelset(mesh, spectra, params, rng)
     model = HeatKernelModel.from_kernelset(init, field_)
     tracer = SurfaceTracer(spectra.vertices, spectra.faces, device=dev)
-    geo = [torch.as_tensor(np.asarray(a), device=dev) for a in (spectra.vertices, spectra.faces)]
-    frames = torch.as_tensor(np.asarray(spectra.face_frames), device=dev, dtype=geo[0].dtype)
+    geo = [torch.as_tensor(np.array(a), device=dev) for a in (spectra.vertices, spectra.faces)]
+    frames = torch.as_tensor(np.array(spectra.face_frames), device=dev, dtype=geo[0].dtype)
     timings["init_s"] = time.perf_counter() - t0
 
     eval_f, eval_b, eval_target = surface_samples(mesh, eval_points, EVAL_SEED)

@@ -1,0 +1,137 @@
+"""``hktex fit``: fit a kernel set to a mesh's texture (UV fitting) or to views (multi-view)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+from hktex_engine.config import FitParams, SpectralConfig
+
+#: where computed spectra are cached when --spectra is not given (override: HKTEX_CACHE_DIR)
+DEFAULT_CACHE = Path(os.environ.get("HKTEX_CACHE_DIR", Path.home() / ".cache" / "hktex"))
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(x) for x in text.split(",") if x.strip())
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"not a comma-separated list of numbers: {text}") from exc
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    d = FitParams()
+    s = SpectralConfig()
+    p = subparsers.add_parser(
+        "fit",
+        help="fit a heat-kernel texture (.hkt) to a textured mesh or to views",
+        description="UV fitting (the mesh's albedo texture, or --texture) or multi-view fitting "
+        "(--views DIR). Spectra come from --spectra or are computed once into a cache.",
+    )
+    p.add_argument("mesh", type=Path, help="mesh file (OBJ, PLY, GLB/glTF, OFF)")
+    p.add_argument("-o", "--output", type=Path, required=True, help="kernel-set file to write")
+    p.add_argument("--texture", type=Path, help="albedo image (default: the mesh's own)")
+    p.add_argument("--views", type=Path, help="multi-view dataset directory (docs/views.md)")
+    p.add_argument("--spectra", type=Path, help="spectra directory (default: compute/cache)")
+    p.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="spectra cache root")
+    p.add_argument("--kernels", type=int, default=d.kernels, help="initial kernel count")
+    p.add_argument("--max-kernels", type=int, default=None, help="budget (default 7 x kernels)")
+    p.add_argument("--steps", type=int, default=d.steps, help="optimisation steps")
+    p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--points-per-step", type=int, default=d.points_per_step)
+    p.add_argument("--no-densify", action="store_true", help="keep the kernel count fixed")
+    p.add_argument("--checkpoint-dir", type=Path, help="resumable fit: checkpoints go here")
+    p.add_argument("--eval-points", type=int, default=60_000, help="surface-PSNR sample count")
+    p.add_argument("--device", default=None, help="torch device (default: cuda if present)")
+    p.add_argument("--angles", type=int, default=s.angles, help="spectra: angle nodes")
+    p.add_argument(
+        "--anisotropies", type=_floats, default=s.anisotropies, help="spectra: eta nodes, a,b,c"
+    )
+    p.add_argument("--k", type=int, default=s.k, help="spectra: eigenpairs per node")
+    p.add_argument("--k-iso", type=int, default=s.k_iso, help="spectra: isotropic eigenpairs")
+    p.set_defaults(func=run)
+
+
+def _params(args: argparse.Namespace) -> FitParams:
+    if args.kernels < 1 or args.steps < 0 or args.points_per_step < 1:
+        raise ValueError("--kernels and --points-per-step must be >= 1, --steps >= 0")
+    if args.max_kernels is not None and args.max_kernels < args.kernels:
+        raise ValueError("--max-kernels must be >= --kernels")
+    return FitParams(
+        kernels=args.kernels,
+        max_kernels=args.max_kernels,
+        steps=args.steps,
+        seed=args.seed,
+        points_per_step=args.points_per_step,
+        densify=not args.no_densify,
+    )
+
+
+def run(args: argparse.Namespace) -> dict:
+    from hktex_engine.cli import TerminalProgress
+    from hktex_engine.hkt import save_hkt
+    from hktex_engine.mesh import load_mesh
+    from hktex_engine.spectra import SpectraCache, load_spectra
+
+    params = _params(args)
+    if not args.mesh.is_file():
+        raise FileNotFoundError(f"mesh file not found: {args.mesh}")
+    if args.texture is not None and not args.texture.is_file():
+        raise FileNotFoundError(f"texture file not found: {args.texture}")
+    if args.views is not None and not args.views.is_dir():
+        raise FileNotFoundError(f"views directory not found: {args.views}")
+    if not args.output.parent.is_dir():
+        raise FileNotFoundError(f"output directory does not exist: {args.output.parent}")
+    t0 = time.perf_counter()
+    mesh = load_mesh(args.mesh, texture=args.texture)
+    if args.spectra is not None:
+        spectra = load_spectra(args.spectra, expect_mesh_hash=mesh.content_hash)
+    else:
+        config = SpectralConfig(
+            angles=args.angles, anisotropies=args.anisotropies, k=args.k, k_iso=args.k_iso
+        )
+        bar = TerminalProgress("spectra")
+        try:
+            spectra = SpectraCache(args.cache_dir / "spectra").get_or_compute(mesh, config, bar)
+        finally:
+            bar.close()
+    bar = TerminalProgress("fit")
+    try:
+        if args.views is not None:
+            # multi-view fitting lives with the renderer (Mitsuba); import only when asked
+            from hktex_engine.fit_multiview import fit_multiview
+            from hktex_engine.views import load_views
+
+            result = fit_multiview(
+                mesh,
+                spectra,
+                load_views(args.views),
+                params,
+                bar,
+                args.checkpoint_dir,
+                args.device,
+            )
+            task = "fit_multiview"
+        else:
+            from hktex_engine.fit_uv import fit_uv
+
+            result = fit_uv(
+                mesh, spectra, params, bar, args.checkpoint_dir, args.device, args.eval_points
+            )
+            task = "fit_uv"
+    finally:
+        bar.close()
+    save_hkt(result.kernelset, args.output)
+    metrics = dict(result.metrics)
+    psnr = metrics.get("surface_psnr", metrics.get("psnr"))
+    return {
+        "task": task,
+        "output": str(args.output),
+        "spectra": str(spectra.path) if spectra.path is not None else None,
+        "kernels": len(result.kernelset),
+        "metrics": metrics,
+        "seconds": time.perf_counter() - t0,
+        "message": f"wrote {args.output} ({len(result.kernelset)} kernels"
+        + (f", PSNR {psnr:.2f} dB)" if isinstance(psnr, float) else ")"),
+    }
