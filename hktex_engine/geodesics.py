@@ -18,9 +18,9 @@ warning says so).
 
 Why torch rather than numpy: the optimiser holds centres as torch tensors, possibly on CUDA,
 and the same code runs there without a host round trip (pass ``device=``). On the CPU neither
-wins outright (one crossing iteration's core, benchmarks/geodesics.py: numpy ~16 us against
-torch ~76 us at 100 active paths, torch ~1.8x faster at 10,000), and a trace of 10,000
-typical optimiser steps takes ~10-40 ms either way. Everything is float64: paths cross tens of
+wins outright (one crossing iteration's core, benchmarks/geodesics.py: numpy ~15 us against
+torch ~75-135 us at 100 active paths, torch ~1.7x faster at 10,000), and a trace of 10,000
+typical optimiser steps takes ~15-50 ms on a loaded 2-core machine. Everything is float64: paths cross tens of
 edges and the barycentric bookkeeping must not drift.
 
 Conventions: a path that reaches a boundary edge (or a boundary vertex) *stops there*
