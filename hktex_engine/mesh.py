@@ -9,7 +9,9 @@ of the canonical geometry that identifies it across uploads and caches.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,6 +82,11 @@ HASH_VERSION = "hktex-mesh-v1"
 #: its cotangent weights are unbounded and the FEM matrices lose definiteness.
 DEGENERATE_AREA_FRACTION = 1e-12
 
+#: Before merging, a file may hold at most this many times ``max_vertices`` positions and
+#: triangles. A fully seam-split closed mesh has 3F = 6V corner positions, so 8x admits every
+#: real mesh while a hostile file is refused before its arrays are built.
+RAW_ELEMENT_FACTOR = 8
+
 _TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tga", ".tif", ".tiff", ".webp")
 
 TextureSource = str | os.PathLike | np.ndarray | None
@@ -112,9 +119,11 @@ def load_mesh(
     if not path.is_file():
         raise FileNotFoundError(f"mesh file not found: {path}")
     kind = _detect_format(path, file_type)
+    limit = RAW_ELEMENT_FACTOR * max_vertices
     if kind == "obj":
-        raw = _read_obj(path)
+        raw = _read_obj(path, limit)
     else:
+        _precheck_counts(path, kind, limit)
         raw = _read_with_trimesh(path, kind)
     tex = load_texture(texture) if texture is not None else raw.texture
     return _build_mesh(
@@ -182,30 +191,129 @@ def _detect_format(path: Path, file_type: str | None) -> str:
     return "obj"
 
 
-def _read_obj(path: Path) -> _RawMesh:
+def _read_obj(path: Path, limit: int) -> _RawMesh:
     """Strict OBJ reader keeping per-corner UVs in the file's face order.
 
     Written by hand because trimesh's OBJ loader (5.x) silently accepts truncated lines
     (a 2-coordinate vertex yields an (n, 2) array), raises a bare IndexError on an
-    out-of-range index, and in ``maintain_order`` mode drops the UV seams. Here every
-    malformed statement is reported with its line number.
+    out-of-range index, and in ``maintain_order`` mode drops the UV seams. Regular files take
+    a vectorised path; anything irregular (mixed polygon sizes, relative indices, trailing
+    comments, a defect) is re-read line by line, which reports defects with line numbers.
     """
     data = path.read_bytes()
     if b"\x00" in data:
         raise UnreadableMeshError(f"{path.name}: binary data in an OBJ file (NUL byte)")
+    n_v = data.count(b"\nv ") + data.startswith(b"v ")
+    n_f = data.count(b"\nf ") + data.startswith(b"f ")
+    if n_v > limit or n_f > limit:
+        raise TooManyVerticesError(
+            f"{path.name}: {n_v} vertex and {n_f} face statements; more than {limit} cannot "
+            "merge to a mesh within the vertex limit"
+        )
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise UnreadableMeshError(
             f"{path.name}: not a text OBJ file (invalid UTF-8 at byte {exc.start})"
         ) from None
+    lines = text.splitlines()
+    mtllibs = [ln.split(None, 1)[1].strip() for ln in lines if ln.startswith("mtllib ")]
+    materials_used = [ln.split()[1] for ln in lines if ln.startswith("usemtl ")]
+    fast = _parse_obj_fast(text, lines)
+    if fast is not None:
+        pos, faces, corner_uvs = fast
+    else:
+        pos, faces, corner_uvs = _parse_obj_lines(path, lines)
+    texture = _obj_material_texture(path, mtllibs, materials_used)
+    return _RawMesh(pos, faces, corner_uvs, texture)
+
+
+_OBJ_IGNORED = ("#", "vn ", "vp ", "o ", "g ", "s ", "mtllib ", "usemtl ", "l ")
+
+
+def _parse_obj_fast(text: str, lines: list[str]):
+    """Vectorised parse of a regular OBJ, or None when the file needs the line-by-line reader.
+
+    Regular: every line is empty, ignored, or a ``v x y z`` / ``vt u v [w]`` / ``f`` statement;
+    all faces have the same corner count and corner format with positive indices in range;
+    no vertex defined after the first face.
+    """
+    v_lines = [ln for ln in lines if ln.startswith("v ")]
+    t_lines = [ln for ln in lines if ln.startswith("vt ")]
+    f_lines = [ln for ln in lines if ln.startswith("f ")]
+    other = sum(1 for ln in lines if not ln or ln.isspace() or ln.startswith(_OBJ_IGNORED))
+    if (
+        not v_lines
+        or not f_lines
+        or len(v_lines) + len(t_lines) + len(f_lines) + other != len(lines)
+    ):
+        return None
+    first_f = text.find("\nf ")
+    if text.rfind("\nv ") > first_f or text.rfind("\nvt ") > first_f:
+        return None
+    pos = _fast_table(v_lines, "v", 4)
+    uvs = _fast_table(t_lines, "vt", len(t_lines[0].split())) if t_lines else None
+    if pos is None or (t_lines and (uvs is None or uvs.shape[1] < 2)):
+        return None
+    k = len(f_lines[0].split()) - 1
+    tokens = " ".join(f_lines).split()
+    if k < 3 or len(tokens) != (k + 1) * len(f_lines):
+        return None
+    table = np.array(tokens).reshape(-1, k + 1)
+    if not np.all(table[:, 0] == "f"):
+        return None
+    corners = table[:, 1:]
+    first = corners[0, 0]
+    slashes = first.count("/")
+    if not np.all(np.char.count(corners, "/") == slashes) or slashes > 2:
+        return None
+    no_uv = slashes == 0 or "//" in first
+    if "//" in first and not np.all(np.char.find(corners, "//") >= 0):
+        return None
+    per_corner = 1 if slashes == 0 else (2 if "//" in first else slashes + 1)
+    flat = " ".join(corners.ravel()).replace("/", " ").split()
+    if len(flat) != corners.size * per_corner:
+        return None
+    try:
+        ints = np.array(flat).astype(np.int64).reshape(len(corners), k, per_corner)
+    except ValueError:
+        return None
+    v_idx = ints[:, :, 0] - 1
+    if v_idx.min() < 0 or v_idx.max() >= len(pos):
+        return None
+    fan = np.arange(1, k - 1)
+    order = np.stack([np.zeros_like(fan), fan, fan + 1], axis=1)  # (k - 2, 3) corner slots
+    faces = v_idx[:, order].reshape(-1, 3)
+    corner_uvs = None
+    if not no_uv and uvs is not None:
+        t_idx = ints[:, :, 1] - 1
+        if t_idx.min() < 0 or t_idx.max() >= len(uvs):
+            return None
+        corner_uvs = uvs[:, :2][t_idx[:, order].reshape(-1, 3)]
+    return pos[:, :3], faces, corner_uvs
+
+
+def _fast_table(lines: list[str], key: str, width: int) -> np.ndarray | None:
+    """Numbers of equally long ``key a b c`` lines as a float array, or None if irregular."""
+    tokens = " ".join(lines).split()
+    if width < 2 or len(tokens) != width * len(lines):
+        return None
+    table = np.array(tokens).reshape(-1, width)
+    if not np.all(table[:, 0] == key):
+        return None
+    try:
+        return table[:, 1:].astype(np.float64)
+    except ValueError:
+        return None
+
+
+def _parse_obj_lines(path: Path, lines: list[str]):
+    """Line-by-line OBJ parse: slower, handles every variant, names the line of a defect."""
     positions: list[tuple[float, float, float]] = []
     uvs: list[tuple[float, float]] = []
     tri_v: list[tuple[int, int, int]] = []
     tri_t: list[tuple[int, int, int]] = []
-    mtllibs: list[str] = []
-    materials_used: list[str] = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(lines, start=1):
         hash_at = line.find("#")
         if hash_at >= 0:
             line = line[:hash_at]
@@ -227,10 +335,6 @@ def _read_obj(path: Path) -> _RawMesh:
             for i in range(1, len(corners) - 1):
                 tri_v.append((corners[0][0], corners[i][0], corners[i + 1][0]))
                 tri_t.append((corners[0][1], corners[i][1], corners[i + 1][1]))
-        elif key == "mtllib" and len(tokens) > 1:
-            mtllibs.append(line.split(None, 1)[1].strip())
-        elif key == "usemtl" and len(tokens) > 1:
-            materials_used.append(tokens[1])
     if not positions and not tri_v:
         raise UnreadableMeshError(f"{path.name}: no vertex or face statements (not an OBJ file?)")
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
@@ -239,8 +343,7 @@ def _read_obj(path: Path) -> _RawMesh:
     t_idx = np.asarray(tri_t, dtype=np.int64).reshape(-1, 3)
     if len(faces) and uvs and np.all(t_idx >= 0):
         corner_uvs = np.asarray(uvs, dtype=np.float64)[t_idx]
-    texture = _obj_material_texture(path, mtllibs, materials_used)
-    return _RawMesh(pos, faces, corner_uvs, texture)
+    return pos, faces, corner_uvs
 
 
 def _obj_floats(tokens: list[str], count: int, lineno: int, what: str) -> tuple:
@@ -306,6 +409,79 @@ def _obj_material_texture(
             raise TextureError(f"{mtl_path.name}: map_Kd {maps[name]!r} not found")
         return load_texture(image)
     return None
+
+
+def _precheck_counts(path: Path, kind: str, limit: int) -> None:
+    """Refuse a file whose header declares more elements than can merge within the limit.
+
+    trimesh allocates what a header declares; reading the counts first keeps a large (or
+    lying) PLY, OFF or glTF from costing gigabytes before the vertex limit is checked.
+    """
+    counts = {"ply": _ply_counts, "off": _off_counts, "glb": _gltf_counts, "gltf": _gltf_counts}
+    reader = counts.get(kind)
+    if reader is None:
+        return
+    try:
+        n_vertices, n_faces = reader(path)
+    except (OSError, ValueError, KeyError, TypeError, IndexError, struct.error):
+        return  # unparsable headers are trimesh's to reject, with its own message
+    if n_vertices > limit or n_faces > limit:
+        raise TooManyVerticesError(
+            f"{path.name}: declares {n_vertices} vertices and {n_faces} faces; more than "
+            f"{limit} cannot merge to a mesh within the vertex limit"
+        )
+
+
+def _ply_counts(path: Path) -> tuple[int, int]:
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    header = head.split(b"end_header", 1)[0].decode("ascii", errors="replace")
+    counts = {"vertex": 0, "face": 0}
+    for line in header.splitlines():
+        tokens = line.split()
+        if len(tokens) == 3 and tokens[0] == "element" and tokens[1] in counts:
+            counts[tokens[1]] = int(tokens[2])
+    return counts["vertex"], counts["face"]
+
+
+def _off_counts(path: Path) -> tuple[int, int]:
+    with open(path, "rb") as fh:
+        head = fh.read(65536).decode("ascii", errors="replace")
+    tokens: list[str] = []
+    for line in head.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            tokens += line.split()
+        if len(tokens) >= 3:
+            break
+    if tokens and tokens[0].endswith("OFF"):
+        tokens = tokens[1:]
+    return int(tokens[0]), int(tokens[1])
+
+
+def _gltf_counts(path: Path) -> tuple[int, int]:
+    with open(path, "rb") as fh:
+        if fh.read(4) == b"glTF":
+            fh.read(8)
+            chunk_length = struct.unpack("<I", fh.read(4))[0]
+            fh.read(4)
+            doc = json.loads(fh.read(min(chunk_length, 64 << 20)))
+        else:
+            fh.seek(0)
+            doc = json.loads(fh.read(64 << 20))
+    accessors = doc.get("accessors", [])
+
+    def mesh_counts(mesh: dict) -> tuple[int, int]:
+        verts = faces = 0
+        for prim in mesh.get("primitives", []):
+            verts += int(accessors[prim["attributes"]["POSITION"]]["count"])
+            if "indices" in prim:
+                faces += int(accessors[prim["indices"]]["count"]) // 3
+        return verts, faces
+
+    per_mesh = [mesh_counts(m) for m in doc.get("meshes", [])]
+    used = [n["mesh"] for n in doc.get("nodes", []) if "mesh" in n] or range(len(per_mesh))
+    return sum(per_mesh[i][0] for i in used), sum(per_mesh[i][1] for i in used)
 
 
 def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:

@@ -320,7 +320,7 @@ def test_header_counts_cannot_blow_memory(tmp_path):
     )
     off = "OFF\n1000000000 1000000000 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
     for name, data in (("huge.ply", ply), ("huge.off", off)):
-        with pytest.raises(UnreadableMeshError):
+        with pytest.raises((TooManyVerticesError, UnreadableMeshError)):
             load_mesh(write(tmp_path, name, data))
 
 
@@ -336,3 +336,31 @@ def test_gltf_cannot_reference_files_outside_its_folder(tmp_path):
     )
     with pytest.raises(UnreadableMeshError):
         load_mesh(write(tmp_path / "up", "evil.gltf", gltf))
+
+
+def test_fast_and_line_by_line_obj_readers_agree(tmp_path, monkeypatch):
+    """A regular file takes the vectorised path; a trailing comment forces the line reader."""
+    import hktex_engine.mesh as mesh_module
+
+    calls = []
+    line_reader = mesh_module._parse_obj_lines
+    monkeypatch.setattr(
+        mesh_module, "_parse_obj_lines", lambda *a: calls.append(1) or line_reader(*a)
+    )
+    v, f, uv, tex = textured_demo(subdivisions=2, texture_size=16)
+    regular = write_textured_obj(tmp_path / "a.obj", v, f, uv)
+    text = regular.read_text()
+    irregular = write(tmp_path, "b.obj", text.replace("\nv ", "  # x\nv ", 1))
+    a = load_mesh(regular)
+    assert calls == []
+    b = load_mesh(irregular)
+    assert calls == [1]
+    assert a.content_hash == b.content_hash
+    np.testing.assert_array_equal(a.faces, b.faces)
+    np.testing.assert_array_equal(a.corner_uvs, b.corner_uvs)
+
+
+def test_obj_statement_counts_are_capped_before_parsing(tmp_path):
+    path = write(tmp_path, "many.obj", "v 0 0 0\n" * 100 + "f 1 2 3\n")
+    with pytest.raises(TooManyVerticesError, match="100 vertex"):
+        load_mesh(path, max_vertices=10)
