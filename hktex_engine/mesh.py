@@ -504,6 +504,7 @@ def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
     if not geometries:
         raise UnreadableMeshError(f"{path.name}: no triangle mesh found in the {kind.upper()} file")
     positions, faces, uv_parts, textures = [], [], [], []
+    image_cache: dict[int, np.ndarray] = {}
     offset = 0
     for g in geometries:
         v = np.asarray(g.vertices, dtype=np.float64)
@@ -519,15 +520,17 @@ def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
         uv_parts.append(
             None if uv is None or len(uv) != len(v) else np.asarray(uv, dtype=np.float64)[f]
         )
-        textures.append(_trimesh_texture(g))
+        textures.append(_trimesh_texture(g, image_cache))
     corner_uvs = None
     if all(u is not None for u in uv_parts):
         corner_uvs = np.concatenate(uv_parts, axis=0).reshape(-1, 3, 2)
-    distinct = {id(t) for t in textures if t is not None}
     # One texture for the whole mesh: several materials would need an atlas we do not build.
-    texture = next((t for t in textures if t is not None), None) if len(distinct) == 1 else None
-    if texture is not None and any(t is None for t in textures):
-        texture = None
+    # Instances of one geometry carry copies of its image, so compare contents, not objects.
+    texture = None
+    if textures and all(t is not None for t in textures):
+        distinct = {id(t): t for t in textures}
+        if len({texture_hash(t) for t in distinct.values()}) == 1:
+            texture = textures[0]
     return _RawMesh(np.concatenate(positions), np.concatenate(faces), corner_uvs, texture)
 
 
@@ -545,7 +548,8 @@ def _scene_meshes(scene: trimesh.Scene) -> list[trimesh.Trimesh]:
     return out
 
 
-def _trimesh_texture(geom: trimesh.Trimesh) -> np.ndarray | None:
+def _trimesh_texture(geom: trimesh.Trimesh, cache: dict[int, np.ndarray]) -> np.ndarray | None:
+    """The base-colour image of a geometry's material; ``cache`` (per load) converts each once."""
     material = getattr(geom.visual, "material", None)
     if material is None:
         return None
@@ -554,10 +558,8 @@ def _trimesh_texture(geom: trimesh.Trimesh) -> np.ndarray | None:
         image = getattr(material, "image", None)
     if image is None:
         return None
-    cache = _trimesh_texture.__dict__.setdefault("_last", {})
-    key = id(image)
+    key = id(image)  # the image stays referenced by ``geom`` for the whole load
     if key not in cache:
-        cache.clear()
         cache[key] = load_texture(np.asarray(image.convert("RGB")))
     return cache[key]
 
