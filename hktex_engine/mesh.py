@@ -149,9 +149,14 @@ def mesh_from_arrays(
         raise UnreadableMeshError(f"vertices must have shape (n, 3), got {positions.shape}")
     if tri.ndim != 2 or tri.shape[1] != 3:
         raise UnreadableMeshError(f"faces must have shape (m, 3), got {tri.shape}")
-    if tri.size and not np.issubdtype(tri.dtype, np.integer):
-        if not np.all(np.isfinite(tri)) or np.any(tri != np.round(tri)):
+    if not np.issubdtype(tri.dtype, np.integer):
+        try:
+            as_float = tri.astype(np.float64)
+        except (TypeError, ValueError):
+            raise UnreadableMeshError("faces must hold integer vertex indices") from None
+        if not np.all(np.isfinite(as_float)) or np.any(as_float != np.round(as_float)):
             raise UnreadableMeshError("faces must hold integer vertex indices")
+        tri = as_float
     tri = tri.astype(np.int64)
     if tri.size and (tri.min() < 0 or tri.max() >= len(positions)):
         bad = int(np.flatnonzero(((tri < 0) | (tri >= len(positions))).any(axis=1))[0])

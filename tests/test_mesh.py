@@ -89,6 +89,14 @@ def test_out_of_range_array_index():
         mesh_from_arrays(SQUARE_V, np.array([[0, 1, 2], [0, 2, 4]]))
 
 
+@pytest.mark.parametrize(
+    "faces", [np.array([["a", "b", "c"]]), np.array([[0, 1, 2.5]]), np.zeros((2, 4), int)]
+)
+def test_malformed_face_arrays(faces):
+    with pytest.raises(UnreadableMeshError):
+        mesh_from_arrays(np.eye(3), faces)
+
+
 def test_empty_mesh(tmp_path):
     path = write(tmp_path, "points.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     with pytest.raises(EmptyMeshError):
