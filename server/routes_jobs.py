@@ -20,6 +20,8 @@ from sqlalchemy import select
 router = APIRouter(prefix="/v1", tags=["jobs"])
 
 SSE_POLL_SECONDS = 0.5
+# API fit fields that are arguments of the fit function, not members of FitParams
+EXTRA_FIT_FIELDS = ("eval_points",)
 SSE_KEEPALIVE_SECONDS = 15.0
 
 
@@ -75,7 +77,7 @@ def _check_params(params: dict) -> None:
     from hktex_engine.config import FitParams
 
     try:
-        fp = FitParams(**params)
+        fp = FitParams(**{k: v for k, v in params.items() if k not in EXTRA_FIT_FIELDS})
     except (TypeError, ValueError) as exc:
         raise HTTPException(422, detail=f"invalid fit params: {exc}") from None
     if fp.max_kernels is not None and fp.max_kernels < fp.kernels:

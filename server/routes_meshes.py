@@ -34,6 +34,7 @@ router = APIRouter(prefix="/v1", tags=["meshes"])
 
 MESH_SUFFIXES = {".obj", ".ply", ".off", ".glb", ".gltf", ".stl"}
 ERRORS = {
+    400: {"description": "malformed request body"},
     401: {"description": "missing or invalid bearer token"},
     404: {"description": "no such resource (or another owner's)"},
     413: {"description": "upload larger than the configured limit"},

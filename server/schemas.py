@@ -55,6 +55,9 @@ class FitParamsIn(_Strict):
     lr_sharpness: float | None = Field(None, gt=0, le=10)
     lr_base: float | None = Field(None, gt=0, le=10)
     lr_centers: float | None = Field(None, gt=0, le=10)
+    eval_points: int | None = Field(
+        None, ge=100, le=1_000_000, description="surface points for the final metrics (fit_uv)"
+    )
 
 
 class JobCreate(_Strict):

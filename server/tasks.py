@@ -139,8 +139,10 @@ def run_fit(ctx: TaskContext) -> Outcome:
         from hktex_engine.fit_uv import fit_uv
 
         extra = {}
-        if ctx.settings.fit_eval_points is not None:
-            extra["eval_points"] = ctx.settings.fit_eval_points
+        eval_points = job.params.get("params", {}).get("eval_points")
+        eval_points = eval_points or ctx.settings.fit_eval_points
+        if eval_points is not None:
+            extra["eval_points"] = int(eval_points)
         result = fit_uv(
             mesh, spectra, params, progress=ctx.progress, checkpoint_dir=checkpoints, **extra
         )

@@ -21,7 +21,14 @@ pytest.importorskip("hktex_engine.fit_uv")
 pytest.importorskip("hktex_engine.query")
 
 SPECTRA = {"angles": 3, "anisotropies": [1, 5], "k": 16, "k_iso": 8}
-PARAMS = {"kernels": 24, "steps": 12, "points_per_step": 128, "seed": 1, "checkpoint_every": 5}
+PARAMS = {
+    "kernels": 24,
+    "steps": 12,
+    "points_per_step": 128,
+    "seed": 1,
+    "checkpoint_every": 5,
+    "eval_points": 2000,
+}
 
 
 @pytest.fixture(scope="module")
@@ -41,9 +48,7 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
     from hktex_engine.spectra import load_spectra
 
     obj, png = textured
-    settings = fast_settings(
-        tmp_path, f"sqlite:///{tmp_path / 'hktex.db'}", workers=1, fit_eval_points=2000
-    )
+    settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'hktex.db'}", workers=1)
     with LiveServer(settings, start_supervisor=True) as live:
         c = httpx.Client(base_url=live.url, timeout=60)
         files = {"mesh": (obj.name, obj.read_bytes()), "texture": (png.name, png.read_bytes())}
