@@ -1,0 +1,160 @@
+"""Generalised sparse eigenproblems ``L phi = lambda M phi`` with a lumped (diagonal) M.
+
+Two solvers (ALGORITHM.md section 2; decision in docs/spectra.md):
+
+* :func:`eigs_cold`: ARPACK shift-invert through ``scipy.sparse.linalg.eigsh``; exact to
+  machine precision, no start needed; used for the first basis and as the naive reference.
+* :func:`eigs_warm`: block shift-invert subspace iteration with Rayleigh-Ritz in the M inner
+  product, started from a neighbouring operator's eigenvectors. Neighbouring grid operators
+  differ little, so a few iterations reach the cold solver's accuracy at a fraction of its
+  cost (ARPACK's cost is its orthogonalisation over ~2K Lanczos vectors, not the
+  factorisation). SciPy has no such warm-started block solver, hence this one; LOBPCG from
+  the same start was measured slower (docs/design STACK-NOTES).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from scipy.sparse.linalg import eigsh, splu
+
+from hktex_engine.errors import SpectraError
+
+#: Shift below the spectrum for shift-invert (meshes are normalised to a bounding box of side
+#: 2, where lambda_1 is O(1)); negative so that L - sigma M is positive definite.
+COLD_SIGMA = -1e-2
+
+
+@dataclass
+class SolveInfo:
+    """What a solve cost and how accurate it is (max relative residual over the kept pairs)."""
+
+    method: str
+    iterations: int
+    max_residual: float
+    seconds: float = 0.0
+
+
+def residuals(L: sp.spmatrix, mass: np.ndarray, evals: np.ndarray, vecs: np.ndarray) -> np.ndarray:
+    """Relative residuals ``||L phi - lambda M phi||_{M^-1} / max(lambda, 1)`` per column.
+
+    The M^-1 norm makes the measure independent of the mesh resolution (it is the L2 norm of
+    the strong-form residual ``M^-1 L phi - lambda phi``).
+    """
+    R = L @ vecs - (mass[:, None] * vecs) * evals[None, :]
+    return np.sqrt(np.einsum("ij,ij->j", R, R / mass[:, None])) / np.maximum(np.abs(evals), 1.0)
+
+
+def eigs_cold(L: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest ``k`` eigenpairs, ascending, M-orthonormal, by ARPACK shift-invert."""
+    n = L.shape[0]
+    if k >= n - 1:
+        raise SpectraError(f"cannot compute {k} eigenpairs of a mesh with {n} vertices")
+    M = sp.diags(mass).tocsc()
+    # A fixed start vector makes the result reproducible (ARPACK's default is random).
+    v0 = np.random.default_rng(0).standard_normal(n)
+    try:
+        evals, vecs = eigsh(L.tocsc(), k=k, M=M, sigma=COLD_SIGMA, which="LM", v0=v0)
+    except Exception as exc:  # ARPACK reports non-convergence as several exception types
+        raise SpectraError(f"eigensolver failed: {exc}") from exc
+    order = np.argsort(evals)
+    return evals[order], canonical_signs(_m_normalise(vecs[:, order], mass))
+
+
+def canonical_signs(vecs: np.ndarray) -> np.ndarray:
+    """Flip each column so its largest-magnitude entry is positive (a reproducible sign)."""
+    idx = np.argmax(np.abs(vecs), axis=0)
+    return vecs * np.sign(vecs[idx, np.arange(vecs.shape[1])])[None, :]
+
+
+def _m_normalise(vecs: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    norms = np.sqrt(np.einsum("ij,ij->j", vecs, mass[:, None] * vecs))
+    return vecs / norms[None, :]
+
+
+def _rayleigh_ritz(
+    L: sp.spmatrix, mass: np.ndarray, Z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Ritz pairs of (L, M) on span(Z), ascending, M-orthonormal.
+
+    Z is first reduced to an M-orthonormal basis through the eigen-decomposition of its Gram
+    matrix, dropping directions that are numerically dependent (a block and its shift-invert
+    image become nearly parallel as the iteration converges); the small problem is then
+    solved as a generalised one so the residual non-orthogonality does not matter.
+    """
+    Z = Z / np.sqrt(np.einsum("ij,ij->j", Z, mass[:, None] * Z))[None, :]
+    G = Z.T @ (mass[:, None] * Z)
+    w, U = np.linalg.eigh(0.5 * (G + G.T))
+    keep = w > w.max() * 1e-12
+    Q = Z @ (U[:, keep] / np.sqrt(w[keep]))
+    MQ = mass[:, None] * Q
+    B = Q.T @ MQ
+    A = Q.T @ (L @ Q)
+    theta, C = sla.eigh(0.5 * (A + A.T), 0.5 * (B + B.T))
+    return theta, Q @ C
+
+
+def _factor(L: sp.spmatrix, mass: np.ndarray, sigma: float):
+    try:
+        return splu((L - sigma * sp.diags(mass)).tocsc(), permc_spec="MMD_AT_PLUS_A")
+    except RuntimeError as exc:  # exactly singular at this shift
+        raise SpectraError(f"factorisation failed at shift {sigma}: {exc}") from exc
+
+
+def eigs_warm(
+    L: sp.spmatrix,
+    mass: np.ndarray,
+    start: np.ndarray,
+    k: int,
+    tol: float = 1e-6,
+    max_iter: int = 25,
+    krylov: bool = True,
+) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
+    """Lowest ``k`` eigenpairs from a start block (n, p >= k) by shift-invert block iteration.
+
+    Each iteration applies ``S = (L - sigma M)^-1 M`` to the block ``X`` (one sparse LU shared
+    by the iterations) and does Rayleigh-Ritz on ``span(X, S X)`` (``krylov``; a two-block
+    Krylov space, markedly faster per iteration than plain subspace iteration on ``S X``).
+    The shift starts just below 0, where ``L - sigma M`` is definite and the iteration is
+    safe from any start. Once the Ritz values settle it moves to half the k-th Ritz value:
+    the wanted pairs are then all closer to it than the unwanted ones (which is true only
+    while the k-th Ritz value is below lambda_(p+1), hence the wait), which speeds up the
+    slowest, top pairs. Stops when every kept pair's relative residual is below ``tol``;
+    falls back to :func:`eigs_cold` if it does not converge. Returns all ``p`` Ritz pairs
+    (the extra ones are a better start for the next node).
+    """
+    n, p = start.shape
+    if p < k:
+        raise ValueError("start block must have at least k columns")
+    theta, X = _rayleigh_ritz(L, mass, start)
+    sigma = COLD_SIGMA
+    lu = _factor(L, mass, sigma)
+    res = residuals(L, mass, theta[:k], X[:, :k])
+    it = 0
+    moved = False
+    while res.max() > tol and it < max_iter:
+        Z = lu.solve(mass[:, None] * X)
+        previous = theta[:k]
+        theta, X = _rayleigh_ritz(L, mass, np.hstack([X, Z]) if krylov else Z)
+        theta, X = theta[:p], X[:, :p]
+        res = residuals(L, mass, theta[:k], X[:, :k])
+        it += 1
+        settled = np.abs(theta[:k] - previous).max() < 1e-2 * theta[k - 1]
+        if not moved and settled and res.max() > tol:
+            sigma, moved = 0.5 * theta[k - 1], True
+            lu = _factor(L, mass, sigma)
+    if res.max() > tol:
+        vals, vecs = eigs_cold(L, mass, p)
+        return (
+            vals,
+            vecs,
+            SolveInfo(
+                "cold (warm did not converge)",
+                it,
+                float(residuals(L, mass, vals[:k], vecs[:, :k]).max()),
+            ),
+        )
+    return theta, X, SolveInfo("warm", it, float(res.max()))

@@ -1,0 +1,328 @@
+"""Eigensolver, alignment, the spectra artefact and its cache (ALGORITHM.md sections 2-3)."""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hktex_engine import spectra as spectra_mod
+from hktex_engine.alignment import align_basis, eigen_clusters
+from hktex_engine.config import SpectralConfig
+from hktex_engine.eigensolver import eigs_cold, eigs_warm, residuals
+from hktex_engine.errors import Cancelled, SpectraError
+from hktex_engine.mesh import Mesh
+from hktex_engine.operators import AlboAssembler, cotangent_stiffness, lumped_mass
+from hktex_engine.spectra import (
+    SpectraCache,
+    compute_spectra,
+    load_spectra,
+    write_spectra,
+)
+
+TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
+
+
+def _ellipsoid_mesh(level: int = 3, seed: int = 2) -> Mesh:
+    """A bumpy ellipsoid (642 vertices at level 3): no symmetry, so no exact degeneracy."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=level)
+    rng = np.random.default_rng(seed)
+    V = m.vertices * np.array([1.0, 0.7, 0.5])
+    V = V * (1 + 0.03 * rng.standard_normal((len(V), 1)))
+    return Mesh(
+        vertices=V,
+        faces=np.asarray(m.faces, dtype=np.int64),
+        scale=1.0,
+        translation=np.zeros(3),
+        content_hash=f"ellipsoid-{level}-{seed}",
+    )
+
+
+@pytest.fixture(scope="module")
+def mesh() -> Mesh:
+    return _ellipsoid_mesh()
+
+
+@pytest.fixture(scope="module")
+def tiny(mesh):
+    return compute_spectra(mesh, TINY)
+
+
+def _operator(mesh, spectra, g):
+    asm = AlboAssembler(mesh.vertices, mesh.faces, spectra.face_frames)
+    S = len(spectra.grid_eta)
+    return asm.stiffness(spectra.grid_theta[g // S], spectra.grid_eta[g % S])
+
+
+# ------------------------------------------------------------------ eigensolver
+
+
+def test_every_stored_node_is_an_m_orthonormal_eigenbasis(mesh, tiny):
+    n, G, K = tiny.evecs.shape
+    assert (n, G, K) == (mesh.n_vertices, 6, 16)
+    M = tiny.mass
+    for g in range(G):
+        L = _operator(mesh, tiny, g)
+        phi = np.asarray(tiny.evecs[:, g, :], dtype=np.float64)
+        gram = phi.T @ (M[:, None] * phi)
+        np.testing.assert_allclose(gram, np.eye(K), atol=1e-5)
+        assert residuals(L, M, tiny.evals[g], phi).max() < 1e-4
+    # isotropic spectrum: lambda_0 = 0 with a constant eigenvector
+    iso = tiny.iso_evecs
+    assert abs(tiny.iso_evals[0]) < 1e-8
+    assert np.ptp(iso[:, 0]) < 1e-8 * np.abs(iso[:, 0]).max()
+    np.testing.assert_allclose(iso.T @ (M[:, None] * iso), np.eye(TINY.k_iso), atol=1e-8)
+    L = cotangent_stiffness(mesh.vertices, mesh.faces)
+    assert residuals(L, M, tiny.iso_evals, iso).max() < 1e-8
+
+
+def test_node_spectra_equal_an_independent_dense_solve(mesh, tiny):
+    import scipy.linalg as sla
+
+    for g in (1, 3):
+        L = _operator(mesh, tiny, g).toarray()
+        exact = sla.eigh(L, np.diag(tiny.mass), eigvals_only=True, subset_by_index=(0, 15))
+        np.testing.assert_allclose(np.sort(tiny.evals[g]), exact, rtol=1e-6, atol=1e-9)
+
+
+def test_warm_solver_matches_cold_from_a_neighbour_start(mesh):
+    V, F = mesh.vertices, mesh.faces
+    from hktex_engine.operators import reference_tangent_field
+
+    asm = AlboAssembler(V, F, reference_tangent_field(V, F))
+    M = lumped_mass(V, F)
+    _, start = eigs_cold(asm.stiffness(0.0, 5.0), M, 30)
+    L = asm.stiffness(0.4, 8.0)
+    cold, _ = eigs_cold(L, M, 24)
+    vals, vecs, info = eigs_warm(L, M, start, 24, tol=1e-8)
+    assert info.max_residual < 1e-8
+    np.testing.assert_allclose(vals[:24], cold, rtol=1e-8, atol=1e-10)
+
+
+def test_too_few_vertices_is_a_spectra_error(mesh):
+    with pytest.raises(SpectraError):
+        compute_spectra(mesh, SpectralConfig(angles=2, anisotropies=(1.0,), k=700, k_iso=9))
+
+
+# ------------------------------------------------------------------ alignment
+
+
+def _basis(mesh, k=12):
+    L = cotangent_stiffness(mesh.vertices, mesh.faces)
+    M = lumped_mass(mesh.vertices, mesh.faces)
+    _, phi = eigs_cold(L, M, k)
+    return phi, M
+
+
+def test_alignment_recovers_permutation_signs_and_degenerate_rotation(mesh):
+    phi, M = _basis(mesh)
+    K = phi.shape[1]
+    evals = np.array([0.0, 1.0, 2.0, 2.0, 3.0, 4.0, 4.0, 4.0, 5.0, 6.0, 7.0, 8.0])
+    rng = np.random.default_rng(0)
+    Q = np.eye(K)
+    c, s = np.cos(0.7), np.sin(0.7)
+    Q[np.ix_([2, 3], [2, 3])] = [[c, -s], [s, c]]  # rotation in the 2-dim eigenspace
+    R3, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    Q[np.ix_([5, 6, 7], [5, 6, 7])] = R3  # and one in the 3-dim eigenspace
+    perm = rng.permutation(K)
+    signs = rng.choice([-1.0, 1.0], K)
+    new = (phi @ Q)[:, perm] * signs
+    new_vals = evals[perm]
+    out, out_vals, info = align_basis(phi, new, new_vals, M, rotation="block")
+    np.testing.assert_allclose(out, phi, atol=1e-10)
+    np.testing.assert_allclose(out_vals, evals, atol=1e-12)
+    assert info.n_clusters == 2 and info.min_overlap > 1 - 1e-10
+    # without rotation the degenerate blocks cannot be recovered: the test can fail
+    bad, _, _ = align_basis(phi, new, new_vals, M, rotation="none")
+    assert np.abs(bad - phi).max() > 0.1
+
+
+def test_block_alignment_keeps_eigenvectors_full_alignment_keeps_closeness(mesh, tiny):
+    L = _operator(mesh, tiny, 1)
+    M = tiny.mass
+    ref = np.asarray(tiny.evecs[:, 0, :], dtype=np.float64)
+    vals, vecs = eigs_cold(L, M, 16)
+    b, bvals, _ = align_basis(ref, vecs, vals, M, rotation="block")
+    f, fvals, _ = align_basis(ref, vecs, vals, M, rotation="full")
+    assert residuals(L, M, bvals, b).max() < 1e-6
+    assert residuals(L, M, fvals, f).max() > 1e-3  # full Procrustes mixes eigenvectors
+    dist = lambda X: np.sqrt(np.sum(M[:, None] * (X - ref) ** 2))  # noqa: E731
+    assert dist(f) <= dist(b) + 1e-12
+    np.testing.assert_allclose(np.sort(fvals), np.sort(vals))  # eigenvalues only permuted
+
+
+def test_eigen_clusters_groups_near_equal_values():
+    groups = eigen_clusters(np.array([0.0, 1.0, 1.0000001, 3.0, 2.0, 2.0000001]))
+    assert sorted(sorted(g.tolist()) for g in groups) == [[0], [1, 2], [3], [4, 5]]
+
+
+# ------------------------------------------------------------------ interpolation continuity
+
+
+def _heat(evals, evecs, src, t):
+    return evecs @ (np.exp(-t * evals) * evecs[src])
+
+
+def _continuity(tiny, evecs, t=0.05, sources=(0, 100, 300)):
+    """Worst relative jump between neighbouring nodes and worst mid-cell deviation."""
+    S = len(tiny.grid_eta)
+    A = len(tiny.grid_theta)
+    jumps, mids = [], []
+    for a in range(A - 1):
+        g00, g01, g10, g11 = a * S, a * S + 1, (a + 1) * S, (a + 1) * S + 1
+        cell = [g00, g01, g10, g11]
+        lam_mid = np.mean([tiny.evals[g] for g in cell], axis=0)
+        phi_mid = np.mean([evecs[:, g, :] for g in cell], axis=0)
+        for src in sources:
+            hs = [_heat(tiny.evals[g], evecs[:, g, :], src, t) for g in cell]
+            h_mid = _heat(lam_mid, phi_mid, src, t)
+            norm = np.linalg.norm(hs[0])
+            jumps.append(np.linalg.norm(hs[0] - hs[2]) / norm)
+            mids.append(np.linalg.norm(h_mid - np.mean(hs, axis=0)) / norm)
+    return max(jumps), max(mids)
+
+
+@pytest.mark.parametrize("rotation,mid_bound", [("block", 0.25), ("full", 0.12)])
+def test_interpolated_heat_kernel_varies_continuously(mesh, rotation, mid_bound):
+    """On a 30-degree grid, a mid-cell kernel stays near the mean of its four node kernels.
+
+    Measured (642-vertex ellipsoid, t = 0.2, k = 16): jump 0.17, mid-cell deviation 0.18
+    (block) / 0.07 (full); with one node's signs scrambled 0.6, with random signs 1.0.
+    """
+    cfg = SpectralConfig(angles=7, anisotropies=(1.0, 3.0), k=16, k_iso=9, rotation=rotation)
+    sp = compute_spectra(mesh, cfg)
+    evecs = np.asarray(sp.evecs, dtype=np.float64)
+    jump, mid = _continuity(sp, evecs, t=0.2)
+    assert jump < 0.3
+    assert mid < mid_bound
+    # scrambling one node's signs (an unaligned grid) breaks it: the measure can fail
+    bad = evecs.copy()
+    bad[:, 1, 1::2] *= -1
+    assert _continuity(sp, bad, t=0.2)[1] > 2.5 * mid
+
+
+# ------------------------------------------------------------------ artefact
+
+
+def test_write_then_mmap_read_back_is_identical(tiny, tmp_path):
+    out = write_spectra(tiny, tmp_path / "sp")
+    back = load_spectra(out)
+    assert isinstance(back.evecs, np.memmap)
+    for name in ("vertices", "faces", "mass", "evals", "evecs", "iso_evals", "iso_evecs"):
+        np.testing.assert_array_equal(np.asarray(getattr(back, name)), getattr(tiny, name))
+    assert back.config == TINY and back.mesh_hash == tiny.mesh_hash
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["format"] == "hktex-spectra" and manifest["sizes"]["nodes"] == 6
+    assert back.evecs.shape == (tiny.vertices.shape[0], 6, 16)
+    assert not list(tmp_path.glob(".sp.tmp-*"))
+
+
+def test_streamed_compute_equals_in_memory_and_float16_option(mesh, tiny, tmp_path):
+    streamed = compute_spectra(mesh, TINY, out_dir=tmp_path / "s")
+    np.testing.assert_allclose(np.asarray(streamed.evecs), tiny.evecs, atol=1e-6)
+    assert (tmp_path / "s" / "manifest.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
+    half = compute_spectra(mesh, SpectralConfig(**{**TINY.to_dict(), "evecs_dtype": "float16"}))
+    assert half.evecs.dtype == np.float16
+    assert np.abs(half.evecs.astype(np.float64) - tiny.evecs).max() < 1e-2
+
+
+def test_corrupt_or_missing_files_raise_spectra_error(tiny, tmp_path):
+    out = write_spectra(tiny, tmp_path / "sp")
+    with pytest.raises(SpectraError):
+        load_spectra(tmp_path / "nope")
+    (out / "manifest.json").write_text("{not json")
+    with pytest.raises(SpectraError):
+        load_spectra(out)
+    out = write_spectra(tiny, tmp_path / "sp2")
+    (out / "evals.npy").unlink()
+    with pytest.raises(SpectraError):
+        load_spectra(out)
+    out = write_spectra(tiny, tmp_path / "sp3")
+    np.save(out / "mass.npy", np.zeros(3))
+    with pytest.raises(SpectraError):
+        load_spectra(out)
+    out = write_spectra(tiny, tmp_path / "sp4")
+    with pytest.raises(SpectraError):
+        load_spectra(out, expect_mesh_hash="someone-else")
+
+
+def test_crashed_write_leaves_no_half_directory(tiny, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    real_save = np.save
+
+    def failing_save(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise OSError("disk full")
+        return real_save(*args, **kwargs)
+
+    monkeypatch.setattr(np, "save", failing_save)
+    with pytest.raises(OSError):
+        write_spectra(tiny, tmp_path / "sp")
+    assert list(tmp_path.iterdir()) == []
+
+
+class _StopAfter:
+    def __init__(self, n: int) -> None:
+        self.n, self.calls = n, 0
+
+    def update(self, step, total, **metrics):
+        self.calls += 1
+
+    def should_stop(self) -> bool:
+        return self.calls >= self.n
+
+
+def test_cancelled_compute_publishes_nothing(mesh, tmp_path):
+    with pytest.raises(Cancelled):
+        compute_spectra(mesh, TINY, progress=_StopAfter(3), out_dir=tmp_path / "sp")
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ cache
+
+
+def test_cache_hit_does_not_recompute(mesh, tmp_path, monkeypatch):
+    cache = SpectraCache(tmp_path)
+    first = cache.get_or_compute(mesh, TINY)
+    assert cache.computed == 1
+
+    def boom(*a, **k):
+        raise AssertionError("recomputed on a cache hit")
+
+    monkeypatch.setattr(spectra_mod, "compute_spectra", boom)
+    again = SpectraCache(tmp_path).get_or_compute(mesh, TINY)
+    assert again.path == first.path
+    np.testing.assert_array_equal(np.asarray(again.evecs), np.asarray(first.evecs))
+    assert cache.lookup(mesh.content_hash, SpectralConfig(angles=2, anisotropies=(1.0,))) is None
+
+
+def test_concurrent_requests_compute_once(mesh, tmp_path, monkeypatch):
+    real = spectra_mod.compute_spectra
+    count = {"n": 0}
+    lock = threading.Lock()
+
+    def counting(*a, **k):
+        with lock:
+            count["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(spectra_mod, "compute_spectra", counting)
+    caches = [SpectraCache(tmp_path) for _ in range(3)]
+    results: list = []
+    threads = [
+        threading.Thread(target=lambda c=c: results.append(c.get_or_compute(mesh, TINY)))
+        for c in caches
+    ]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert count["n"] == 1 and len(results) == 3
+    assert len({Path(r.path) for r in results}) == 1
