@@ -111,17 +111,33 @@ def _texture_class() -> type:
                 raise RenderError("albedo texture used before an albedo function was set")
 
             @dr.wrap(source="drjit", target="torch")
-            def call(face: torch.Tensor, b1: torch.Tensor, b2: torch.Tensor, anchor: torch.Tensor):
+            def call(
+                face: torch.Tensor,
+                b1: torch.Tensor,
+                b2: torch.Tensor,
+                valid: torch.Tensor,
+                anchor: torch.Tensor,
+            ):
                 # prb replays the plugin inside a no-grad backward; the graph must exist anyway
                 with torch.enable_grad():
-                    bary = torch.stack([1.0 - b1 - b2, b1, b2], dim=1)
-                    srgb = fn(face.long(), bary)
-                    lin = srgb_to_linear(srgb) + 0.0 * anchor.sum()
-                    return lin[:, 0].contiguous(), lin[:, 1].contiguous(), lin[:, 2].contiguous()
+                    # Mitsuba calls with every lane of the wavefront, most of them dead after
+                    # the first bounce; the albedo (the expensive part) runs on live lanes only
+                    sel = torch.nonzero(valid.bool()).squeeze(1)
+                    out = torch.zeros((face.shape[0], 3), dtype=b1.dtype, device=b1.device)
+                    if sel.numel():
+                        bary = torch.stack([1.0 - b1[sel] - b2[sel], b1[sel], b2[sel]], dim=1)
+                        lin = srgb_to_linear(fn(face[sel].long(), bary)).to(out.dtype)
+                        out = out.index_copy(0, sel, lin)
+                    out = out + 0.0 * anchor.sum()
+                    return out[:, 0].contiguous(), out[:, 1].contiguous(), out[:, 2].contiguous()
 
-            # lanes that missed carry garbage indices; a negative one would wrap in torch
-            face = dr.select(active & si.is_valid(), mi.Int32(si.prim_index), 0)
-            r, g, b = call(face, si.uv.x, si.uv.y, self.anchor)
+            # lanes that missed carry garbage indices and barycentrics (possibly NaN, which a
+            # zero weight does not cancel in AD): mask them before torch sees them
+            valid = active & si.is_valid()
+            face = dr.select(valid, mi.Int32(si.prim_index), 0)
+            b1 = dr.select(valid, si.uv.x, 1.0 / 3.0)
+            b2 = dr.select(valid, si.uv.y, 1.0 / 3.0)
+            r, g, b = call(face, b1, b2, valid, self.anchor)
             return mi.Color3f(r, g, b)
 
         def eval_1(self, si: Any, active: Any = True) -> Any:
@@ -511,29 +527,12 @@ class RenderScene:
         The adjoint pass draws its own samples (``seed_grad``, decorrelated from ``seed`` by
         default, which keeps gradients of non-linear losses unbiased).
         """
-        import drjit as dr
-        import mitsuba as mi
-
         if self.uv_mode or self._anchor_key is None:
             raise RenderError("render_torch needs a scene with a torch albedo function")
         sensor = sensor if sensor is not None else self.sensor(camera)
-        spp = spp or self.settings.spp
-        params, key, scene = self.params, self._anchor_key, self.scene
-
-        @dr.wrap(source="torch", target="drjit")
-        def _render(anchor: Any) -> Any:
-            # a TensorXf assigned to a Float parameter would silently drop the AD edge
-            flat = anchor.array if hasattr(anchor, "array") else anchor
-            if not dr.grad_enabled(flat):
-                raise RenderError("internal: the render anchor lost its gradient")
-            params[key] = flat  # ties the AD edge to the render through the scene parameter
-            params.update()
-            self.texture_plugin.anchor = params[key]
-            extra = {} if seed_grad is None else {"seed_grad": int(seed_grad)}
-            return mi.render(scene, params=params, sensor=sensor, spp=spp, seed=seed, **extra)
-
         anchor = torch.zeros(1, device=render_device(), requires_grad=True)
-        return _render(anchor)
+        job = _RenderJob(self, sensor, spp or self.settings.spp, seed, seed_grad)
+        return _MitsubaRender.apply(anchor, job)
 
     def hit_buffer(
         self, camera: Camera, sensor: Any = None
@@ -573,6 +572,119 @@ class RenderScene:
         if valid.any():
             bary[valid] = _barycentrics(self.vertices, self.faces, face[valid], p[valid])
         return face.reshape(h, w), bary.reshape(h, w, 3), valid.reshape(h, w)
+
+
+class _RenderJob:
+    """One differentiable render: its scene, sensor, sample counts and the albedo tape.
+
+    Why a tape instead of letting ``dr.wrap`` carry the model's graph: the albedo graphs Dr.Jit
+    records inside Mitsuba can outlive the step (they hang off AD nodes we do not own), and a
+    live graph pins the model parameters' gradient accumulators, which breaks backward once
+    density control resizes those parameters. So inside Mitsuba the albedo is a detached leaf;
+    the tape keeps (model output, leaf) pairs of the adjoint pass, and we push the leaves'
+    gradients into the model ourselves, after which nothing refers to the model's graph.
+    """
+
+    def __init__(
+        self, scene: RenderScene, sensor: Any, spp: int, seed: int, seed_grad: int | None
+    ) -> None:
+        self.scene, self.sensor, self.spp, self.seed, self.seed_grad = (
+            scene,
+            sensor,
+            spp,
+            seed,
+            seed_grad,
+        )
+        self.recording = False
+        self.tape: list[tuple[torch.Tensor, torch.Tensor]] = []
+        self.memo: list[tuple[torch.Tensor, torch.Tensor, Any, Any]] = []
+        self.image: Any = None
+
+    def albedo(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        # Mitsuba asks twice per bounce with the same hits (BSDF eval and sample): answer
+        # repeated queries from a memo, so the model runs once per distinct batch of hits.
+        for f, b, value, leaf in self.memo:
+            if (leaf is not None) == self.recording and f.shape == face_ids.shape:
+                if torch.equal(f, face_ids) and torch.equal(b, bary):
+                    return leaf if self.recording else value
+        fn = self.inner
+        if not self.recording:  # primal pass: values only
+            with torch.no_grad():
+                value = fn(face_ids, bary)
+            self.memo.append((face_ids, bary, value, None))
+            return value
+        out = fn(face_ids, bary)
+        leaf = out.detach().requires_grad_(True)
+        self.tape.append((out, leaf))
+        self.memo.append((face_ids, bary, None, leaf))
+        return leaf
+
+    def run(self) -> Any:
+        import drjit as dr
+        import mitsuba as mi
+
+        sc = self.scene
+        plugin = sc.texture_plugin
+        self.inner = plugin.albedo_fn
+        if self.inner is None:
+            raise RenderError("no albedo function set on the scene")
+        anchor = mi.Float(0.0)
+        dr.enable_grad(anchor)
+        sc.params[sc._anchor_key] = anchor
+        sc.params.update()
+        plugin.anchor = sc.params[sc._anchor_key]
+        extra = {} if self.seed_grad is None else {"seed_grad": int(self.seed_grad)}
+        plugin.albedo_fn = self.albedo
+        try:
+            self.image = mi.render(
+                sc.scene,
+                params=sc.params,
+                sensor=self.sensor,
+                spp=self.spp,
+                seed=self.seed,
+                **extra,
+            )
+        finally:
+            plugin.albedo_fn = self.inner
+            self.memo.clear()
+        return self.image
+
+    def backward(self, grad: torch.Tensor) -> None:
+        import drjit as dr
+        import mitsuba as mi
+
+        plugin = self.scene.texture_plugin
+        plugin.albedo_fn = self.albedo
+        self.recording = True
+        try:
+            weight = mi.TensorXf(grad.detach().to(torch.float32).contiguous())
+            dr.backward(self.image * weight)
+            outs = [o for o, leaf in self.tape if leaf.grad is not None]
+            grads = [leaf.grad for _, leaf in self.tape if leaf.grad is not None]
+            if outs:
+                torch.autograd.backward(outs, grads)
+        finally:
+            plugin.albedo_fn = self.inner
+            self.recording = False
+            self.tape.clear()
+            self.memo.clear()
+            self.image = None
+
+
+class _MitsubaRender(torch.autograd.Function):
+    """Torch view of a Mitsuba render: image forward, ``prb`` adjoint backward."""
+
+    @staticmethod
+    def forward(ctx: Any, anchor: torch.Tensor, job: _RenderJob) -> torch.Tensor:
+        ctx.job = job
+        image = job.run()
+        return image.torch().clone().to(anchor.device)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[None, None]:
+        ctx.job.backward(grad)
+        ctx.job = None
+        return None, None
 
 
 def _barycentrics(V: np.ndarray, F: np.ndarray, face: np.ndarray, p: np.ndarray) -> np.ndarray:
