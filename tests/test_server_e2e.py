@@ -127,10 +127,62 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
         )
         np.testing.assert_allclose(np.load(io.BytesIO(r.content)), expected, atol=1e-4)
 
+        png = c.get(f"/v1/kernelsets/{ks_id}/render", params={"width": 24, "height": 16, "spp": 1})
+        assert png.status_code == 200, png.text
+        assert (
+            png.headers["content-type"] == "image/png" and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+        )
+        assert int.from_bytes(png.content[16:20], "big") == 24  # IHDR width
+
         bad = c.post(
             f"/v1/kernelsets/{ks_id}/albedo",
             json={"face_ids": [len(local_spectra.faces)], "barycentrics": [[1, 0, 0]]},
         )
         assert bad.status_code == 422 and "out of range" in bad.json()["detail"]
         assert c.get("/v1/health").status_code == 200
+        c.close()
+
+
+@pytest.mark.slow
+def test_multiview_fit_through_the_service(tmp_path, textured):
+    """Views rendered from the textured mesh, zipped, uploaded, fitted as a multi-view job."""
+    from hktex_engine.mesh import load_mesh
+    from hktex_engine.views import render_reference_views
+
+    obj, png = textured
+    views_dir = render_reference_views(
+        load_mesh(obj, texture=png), tmp_path / "views", n_views=2, resolution=(32, 32), spp=4
+    )
+    archive = tmp_path / "views.zip"
+    with zipfile.ZipFile(archive, "w") as zf:
+        for f in sorted(views_dir.iterdir()):
+            zf.write(f, arcname=f"views/{f.name}")
+    settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'hktex.db'}", workers=1)
+    with LiveServer(settings, start_supervisor=True) as live:
+        c = httpx.Client(base_url=live.url, timeout=60)
+        mesh = c.post("/v1/meshes", files={"mesh": (obj.name, obj.read_bytes())}).json()
+        views = c.post("/v1/views", files={"archive": ("v.zip", archive.read_bytes())})
+        assert views.status_code == 201, views.text
+        assert views.json()["n_files"] == len(list(views_dir.iterdir()))
+        body = {
+            "mesh_id": mesh["id"],
+            "task": "fit_multiview",
+            "views_id": views.json()["id"],
+            "spectra": SPECTRA,
+            "params": {"kernels": 16, "steps": 3, "seed": 0},
+        }
+        job = c.post("/v1/jobs", json=body)
+        assert job.status_code == 202, job.text
+        done = wait_for(
+            lambda: (
+                (r := c.get(f"/v1/jobs/{job.json()['id']}").json())["state"]
+                in ("succeeded", "failed", "cancelled")
+                and r
+            ),
+            600,
+            "the multi-view fit",
+        )
+        assert done["state"] == "succeeded", done["error"]
+        ks = c.get(f"/v1/kernelsets/{done['result']['kernelset_id']}").json()
+        assert ks["n_kernels"] > 0 and ks["manifest"]["task"] == "fit_multiview"
         c.close()
