@@ -46,7 +46,7 @@ def info(owner: str = Depends(current_owner), svc: ServiceState = Depends(servic
     st = svc.settings
     return schemas.Info(
         version=package_version(),
-        devices=detect_devices(st),
+        devices=svc.devices,
         workers=svc.workers,
         queue=schemas.QueueDepth(**jobqueue.queue_depth(svc.db)),
         owner=owner,
@@ -77,6 +77,7 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
             store=BlobStore(settings.data_dir),
             queries=QueryCache(settings.query_cache_size),
             workers=settings.workers if run_supervisor else 0,
+            devices=detect_devices(settings),
         )
         thread = SupervisorThread(settings) if run_supervisor else None
         if thread is not None:

@@ -20,6 +20,7 @@ class ServiceState:
     queries: QueryCache
     render_lock: threading.Semaphore = field(default_factory=lambda: threading.Semaphore(1))
     workers: int = 0
+    devices: list[str] = field(default_factory=list)
 
 
 def service(request: Request) -> ServiceState:

@@ -140,7 +140,8 @@ class Supervisor:
         env = os.environ.copy()
         env["CUDA_VISIBLE_DEVICES"] = "" if claim.device in (None, "cpu") else claim.device
         env["HKTEX_LEASE_TOKEN"] = claim.token  # not on the command line: ps shows argv
-        env["HKTEX_WORKER_SETTINGS"] = self.settings.model_dump_json()
+        # the job needs no API tokens: keep them out of its environment
+        env["HKTEX_WORKER_SETTINGS"] = self.settings.model_dump_json(exclude={"tokens"})
         cmd = [sys.executable, "-m", "hktex_server.worker_main", claim.job_id]
         log_file = open(self.log_dir / f"{claim.job_id}.log", "ab")  # noqa: SIM115
         log_file.write(f"--- {time.ctime()} {self.name} device={claim.device}\n".encode())

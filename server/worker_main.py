@@ -88,10 +88,12 @@ def progress_record(step: int, total: int, metrics: dict[str, Any]) -> dict[str,
     for key in ("kernel_count", "kernels", "n_kernels"):
         if key in metrics:
             count = metrics.pop(key)
+    stage = metrics.pop("stage", None)
     clean = {k: f for k, v in metrics.items() if (f := _finite(v)) is not None}
     return {
         "step": int(step),
         "total": int(total),
+        "stage": str(stage)[:64] if stage is not None else None,
         "loss": loss,
         "kernel_count": int(count) if _finite(count) is not None else None,
         "metrics": clean,

@@ -290,11 +290,12 @@ def test_progress_writes_are_throttled(backend, monkeypatch):
     monkeypatch.setattr(jobqueue, "write_progress", lambda *a: writes.append(a) or real(*a))
     progress = worker_main.DbProgress(db, jid, claim.token)
     for step in range(1, 500):
-        progress.update(step, 1000, loss=float("nan"), kernels=step, psnr=30.0)
+        progress.update(step, 1000, loss=float("nan"), kernels=step, psnr=30.0, stage="grid")
     progress.flush()
     assert 1 <= len(writes) <= 3
     stored = job(db, jid).progress
     assert stored["step"] == 499 and stored["loss"] is None and stored["metrics"] == {"psnr": 30.0}
+    assert stored["stage"] == "grid" and stored["kernel_count"] == 499
     assert not progress.should_stop()
     jobqueue.request_cancel(db, "local", jid)
     time.sleep(progress.poll_interval)
