@@ -54,6 +54,7 @@ def info(owner: str = Depends(current_owner), svc: ServiceState = Depends(servic
             "max_upload_bytes": st.max_upload_bytes,
             "max_vertices": st.max_vertices,
             "max_batch_points": st.max_batch_points,
+            "max_json_batch_points": st.max_json_batch_points,
             "max_jobs_per_owner": st.max_jobs_per_owner,
             "max_running_per_owner": st.max_running_per_owner,
         },

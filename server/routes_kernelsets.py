@@ -113,13 +113,16 @@ async def albedo(
         body = await read_body(request, limit_points * 4 * 8 + 4096)
         kind, face_ids, bary, points = _parse_npy(body, kind)
     elif ctype == "application/json":
+        limit_points = min(limit_points, svc.settings.max_json_batch_points)
         body = await read_body(request, limit_points * JSON_BYTES_PER_POINT + 4096)
         kind, face_ids, bary, points = _parse_json(body)
     else:
         raise HTTPException(415, detail=f"send application/json or {NPY}, not {ctype or 'nothing'}")
     count = len(points) if kind == "points" else len(face_ids)
     if count > limit_points:
-        raise HTTPException(413, detail=f"{count} points in one batch; the limit is {limit_points}")
+        raise HTTPException(
+            413, detail=f"{count} points in one {ctype} batch; the limit is {limit_points}"
+        )
     warm = await run_in_threadpool(_warm, svc, owner, kernelset_id)
     chunk = svc.settings.query_chunk_points
     if kind == "points":

@@ -85,11 +85,7 @@ async def upload_mesh(
             raise HTTPException(422, detail=f"unsupported mesh format {suffix!r}")
         if mesh_part.size == 0:
             raise HTTPException(422, detail="the mesh file is empty")
-        key = hashlib.sha256()
-        for part in (mesh_part, texture_part):
-            key.update(_digest(part.path).encode() if part is not None else b"-")
-        key.update(suffix.encode())
-        content_key = key.hexdigest()
+        content_key = await run_in_threadpool(_content_key, mesh_part, texture_part, suffix)
         with svc.db.read() as s:
             existing = s.execute(
                 select(MeshRow).where(MeshRow.owner == owner, MeshRow.content_key == content_key)
@@ -108,6 +104,15 @@ async def upload_mesh(
         return mesh_record(row)
     finally:
         remove_parts(parts)
+
+
+def _content_key(mesh_part, texture_part, suffix: str) -> str:
+    """Identity of an upload: its bytes (mesh, texture) and the format its suffix names."""
+    key = hashlib.sha256()
+    for part in (mesh_part, texture_part):
+        key.update(_digest(part.path).encode() if part is not None else b"-")
+    key.update(suffix.encode())
+    return key.hexdigest()
 
 
 def _digest(path: Path) -> str:
@@ -412,7 +417,7 @@ async def upload_views(
         if "archive" not in parts:
             raise HTTPException(422, detail="the multipart body has no 'archive' file")
         archive = parts["archive"].path
-        content_key = _digest(archive)
+        content_key = await run_in_threadpool(_digest, archive)
         with svc.db.read() as s:
             existing = s.execute(
                 select(ViewsRow).where(ViewsRow.owner == owner, ViewsRow.content_key == content_key)

@@ -46,6 +46,9 @@ class Settings(BaseSettings):
     max_archive_members: int = 20_000
     max_vertices: int = 60_000
     max_batch_points: int = 2_000_000
+    max_json_batch_points: int = Field(
+        100_000, description="JSON bodies cost ~100x NPY to parse: big batches must use NPY"
+    )
     max_jobs_per_owner: int = Field(50, description="queued + running jobs an owner may hold")
     max_running_per_owner: int = Field(2, description="fair share: running jobs per owner")
     validate_timeout_seconds: float = 120.0

@@ -208,7 +208,8 @@ def run_sleep(ctx: TaskContext) -> Outcome:
     marker = p.get("marker")
     if marker:  # lets a test count how many processes ever ran this job
         with open(marker, "a") as f:
-            f.write(f"{ctx.job.id} {ctx.job.attempts}\n")
+            gpus = os.environ.get("CUDA_VISIBLE_DEVICES", "?")
+            f.write(f"{ctx.job.id} {ctx.job.attempts} {gpus or '-'}\n")
     for step in range(steps):
         if not p.get("ignore_cancel"):
             check_cancel(ctx.progress)

@@ -300,3 +300,23 @@ def test_progress_writes_are_throttled(backend, monkeypatch):
     jobqueue.request_cancel(db, "local", jid)
     time.sleep(progress.poll_interval)
     assert progress.should_stop() and not progress.lost
+
+
+def test_slots_pinned_to_devices(proc_backend, tmp_path):
+    settings, db = proc_backend
+    marker = tmp_path / "runs.txt"
+    ids = [add_sleep_job(db, steps=5, seconds=1.0, marker=str(marker)) for _ in range(2)]
+    with SupervisorInThread(settings.model_copy(update={"workers": 2, "devices": "3,5"})):
+        wait_for(lambda: all(_state(db, j) == "succeeded" for j in ids), 60, "both jobs")
+    seen = {line.split()[0]: line.split()[2] for line in marker.read_text().splitlines()}
+    assert sorted(seen.values()) == ["3", "5"]  # one job per device, concurrently
+    assert all(job(db, j).device == seen[j] for j in ids)
+
+
+def test_supervisor_shutdown_hands_jobs_back_without_using_an_attempt(proc_backend):
+    settings, db = proc_backend
+    jid = add_sleep_job(db, steps=100, seconds=30, max_attempts=1)
+    with SupervisorInThread(settings):
+        wait_for(lambda: job(db, jid).pid, 30, "worker pid")
+    row = job(db, jid)
+    assert row.state == "queued" and row.attempts == 0 and "shut down" in row.error
