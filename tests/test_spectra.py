@@ -326,3 +326,26 @@ def test_concurrent_requests_compute_once(mesh, tmp_path, monkeypatch):
         th.join()
     assert count["n"] == 1 and len(results) == 3
     assert len({Path(r.path) for r in results}) == 1
+
+
+# ------------------------------------------------------------------ command line
+
+
+def test_cli_writes_spectra_and_prints_json_summary(mesh, tmp_path, capsys):
+    import trimesh
+
+    from hktex_engine.cli import main
+
+    path = tmp_path / "ellipsoid.obj"
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+    out = tmp_path / "sp"
+    args = ["spectra", str(path), "-o", str(out), "--angles", "2", "--anisotropies", "1,4"]
+    rc = main([*args, "--k", "8", "--k-iso", "5", "--json"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out.strip())
+    assert summary["path"] == str(out) and summary["n_vertices"] == mesh.n_vertices
+    assert summary["bytes"] > 0 and "total_s" in summary["timings"]
+    assert load_spectra(out).evecs.shape == (mesh.n_vertices, 4, 8)
+    assert main(["spectra", str(tmp_path / "missing.obj"), "-o", str(out)]) == 2
+    assert main([*args[:-1], "4,1"]) == 2  # not ascending
+    assert "error" in capsys.readouterr().err
