@@ -508,8 +508,16 @@ class RenderScene:
         import mitsuba as mi
 
         sensor = sensor if sensor is not None else self.sensor(camera)
-        with torch.no_grad(), dr.suspend_grad():
-            img = mi.render(self.scene, sensor=sensor, spp=spp or self.settings.spp, seed=seed)
+        plugin = self.texture_plugin
+        inner = plugin.albedo_fn if plugin is not None else None
+        if inner is not None:
+            plugin.albedo_fn = _without_grad(inner)
+        try:
+            with dr.suspend_grad():
+                img = mi.render(self.scene, sensor=sensor, spp=spp or self.settings.spp, seed=seed)
+        finally:
+            if inner is not None:
+                plugin.albedo_fn = inner
         return np.array(img, dtype=np.float32)
 
     def render_torch(
@@ -572,6 +580,16 @@ class RenderScene:
         if valid.any():
             bary[valid] = _barycentrics(self.vertices, self.faces, face[valid], p[valid])
         return face.reshape(h, w), bary.reshape(h, w, 3), valid.reshape(h, w)
+
+
+def _without_grad(fn: AlbedoFn) -> AlbedoFn:
+    """``fn`` on detached inputs with autograd off (plain renders need values only)."""
+
+    def call(face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return fn(face_ids.detach(), bary.detach())
+
+    return call
 
 
 class _RenderJob:
