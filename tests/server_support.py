@@ -46,6 +46,19 @@ def database_url(backend: str, tmp_path: Path) -> str:
     return f"{PG_URL}{sep}options=-csearch_path%3D{schema}"
 
 
+def drop_schema(url: str) -> None:
+    """Remove the per-test PostgreSQL schema ``database_url`` made (no-op for SQLite)."""
+    if "search_path%3D" not in url:
+        return
+    from sqlalchemy import create_engine, text
+
+    schema = url.rsplit("search_path%3D", 1)[1]
+    engine = create_engine(PG_URL)
+    with engine.begin() as conn:
+        conn.execute(text(f"DROP SCHEMA IF EXISTS {schema} CASCADE"))
+    engine.dispose()
+
+
 def fast_settings(tmp_path: Path, url: str, **over) -> Settings:
     base = dict(
         data_dir=tmp_path / "data",

@@ -21,6 +21,7 @@ from tests.server_support import (
     SupervisorInThread,
     add_sleep_job,
     database_url,
+    drop_schema,
     fast_settings,
     job,
     kill_group,
@@ -41,6 +42,7 @@ def backend(request, tmp_path):
     settings, db = _backend(request.param, tmp_path)
     yield settings, db
     db.dispose()
+    drop_schema(settings.resolved_database_url())
 
 
 @pytest.fixture(
@@ -52,6 +54,7 @@ def proc_backend(request, tmp_path):
     settings, db = _backend(request.param, tmp_path)
     yield settings, db
     db.dispose()
+    drop_schema(settings.resolved_database_url())
 
 
 def _state(db, job_id):
