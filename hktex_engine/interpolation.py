@@ -140,7 +140,7 @@ class SpectralField:
         self.evals = self._t(spectra.evals)  # (G, K)
         self.grid_theta = self._t(spectra.grid_theta)
         self.grid_s = self._t(spectra.grid_s)
-        self.faces = torch.as_tensor(np.asarray(spectra.faces, dtype=np.int64), device=self.device)
+        self.faces = torch.from_numpy(np.array(spectra.faces, dtype=np.int64)).to(self.device)
         self.vertices = self._t(spectra.vertices)
         self.embedding = self._t(spectra.embedding)  # (n, K_iso - 1)
         n_nodes = self.grid_theta.shape[0] * self.grid_s.shape[0]

@@ -168,3 +168,33 @@ def test_save_refuses_invalid_and_is_atomic(tmp_path):
     with pytest.raises(KernelSetError, match="theta"):
         save_hkt(ks, tmp_path / "x.hkt")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_compact_storage_changes_colours_little(tmp_path):
+    """Measured effect of float16 members on albedo, on real (tiny) spectra."""
+    from hktex_engine.query import AlbedoQuery
+    from tests.kernels_support import random_kernels, random_points, tiny_spectra
+
+    sp = tiny_spectra()
+    kp = random_kernels(sp, 200, seed=0)
+    rng = np.random.default_rng(1)
+    ks = KernelSet(
+        face_ids=kp["face_ids"],
+        barycentrics=kp["bary"],
+        theta=kp["theta"],
+        eta=rng.uniform(1, 200, 200),
+        threshold=rng.uniform(0.3, 0.9999, 200),
+        sharpness=rng.uniform(10, 200, 200),
+        colors=kp["colors"],
+        base_color=kp["base_color"],
+        kernel_config=KernelConfig(0.01, 0.3, 30, 8),
+        mesh_hash=sp.mesh_hash,
+        config_hash=sp.config_hash,
+    )
+    back = load_hkt(save_hkt(ks, tmp_path / "k.hkt"), sp.mesh_hash, sp.config_hash)
+    f, b = random_points(sp, 3000, seed=2)
+    exact = AlbedoQuery(sp, ks, device="cpu").colors(f, b)
+    diff = np.abs(AlbedoQuery(sp, back, device="cpu").colors(f, b) - exact).max(axis=1)
+    assert np.ptp(exact) > 0.1
+    assert diff.mean() < 1e-3
+    assert np.mean(diff > 1 / 255) < 0.01  # only points on the steepest kernel edges move
