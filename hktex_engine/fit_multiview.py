@@ -27,6 +27,7 @@ from hktex_engine.progress import Progress
 from hktex_engine.render import (
     RenderScene,
     RenderSettings,
+    file_frame_vertices,
     linear_to_srgb,
     render_device,
     srgb_to_linear,
@@ -249,10 +250,7 @@ def evaluate_views(
 
 def file_frame_scene(spectra: Any, settings: RenderSettings) -> RenderScene:
     """A torch-albedo scene of the spectra's mesh in the file's units (where cameras live)."""
-    V_file = (np.asarray(spectra.vertices, np.float64) - np.asarray(spectra.translation)) / float(
-        spectra.scale
-    )
-    return RenderScene(V_file, spectra.faces, settings, albedo_fn=None)
+    return RenderScene(file_frame_vertices(spectra), spectra.faces, settings, albedo_fn=None)
 
 
 def evaluate_kernelset(

@@ -721,7 +721,7 @@ def _barycentrics(V: np.ndarray, F: np.ndarray, face: np.ndarray, p: np.ndarray)
 # --------------------------------------------------------------------------- entry points
 
 
-def _file_frame(spectra: Any) -> np.ndarray:
+def file_frame_vertices(spectra: Any) -> np.ndarray:
     """Spectra vertices back in the mesh file's units (x_file = (x_norm - t) / s)."""
     return (np.asarray(spectra.vertices, np.float64) - np.asarray(spectra.translation)) / float(
         spectra.scale
@@ -788,7 +788,7 @@ def render_kernelset(
     from hktex_engine.query import AlbedoQuery
 
     query = AlbedoQuery(spectra, kernelset, device=device)
-    V = _file_frame(spectra)
+    V = file_frame_vertices(spectra)
     scene = RenderScene(V, spectra.faces, settings, albedo_fn=query_albedo_fn(query))
     single = not isinstance(views, list)
     cams = [parse_view(v, V) for v in ([views] if single else views)]
