@@ -13,7 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,8 @@ import torch
 
 from hktex_engine.config import FitParams
 from hktex_engine.errors import SpectraError, ViewsError
-from hktex_engine.fitting import LoopResult, PointStats, run_fit
+from hktex_engine.fit_uv import FitResult, kernelset_bytes, spectra_bytes
+from hktex_engine.fitting import PointStats, run_fit
 from hktex_engine.progress import Progress
 from hktex_engine.render import (
     RenderScene,
@@ -216,15 +217,6 @@ def initial_model(
 # --------------------------------------------------------------------------- the task
 
 
-@dataclass
-class MultiViewFitResult:
-    """The fitted kernel set, its metrics and the loop's history."""
-
-    kernelset: Any
-    metrics: dict = field(default_factory=dict)
-    loop: LoopResult | None = None
-
-
 def views_fingerprint(views: Views) -> str:
     """Hash of cameras and images: a checkpoint only resumes on the same dataset."""
     h = hashlib.sha256()
@@ -278,7 +270,7 @@ def fit_multiview(
     checkpoint_dir: str | Path | None = None,
     device: str | torch.device | None = None,
     options: MultiViewOptions | None = None,
-) -> MultiViewFitResult:
+) -> FitResult:
     """Fit a kernel set to ``views`` of ``mesh`` (cameras in the mesh file's units).
 
     The torch device follows the Mitsuba variant (CUDA with ``cuda_ad_rgb``); ``device`` may
@@ -335,23 +327,39 @@ def fit_multiview(
         fingerprint=fingerprint,
         momentum=options.center_momentum,
     )
+    t_fit = loop.seconds
     scene.texture_plugin.albedo_fn = _frozen(model)
+    t1 = time.perf_counter()
     quality = evaluate_views(scene, views, spp=max(options.spp, 8))
     metrics = {
         "task": "fit_multiview",
+        "psnr": quality["psnr"],  # training views, masked pixels, sRGB
+        "ssim": quality["ssim"],
         "steps": loop.steps,
+        "resumed_from": loop.resumed_from,
+        "steps_per_second": loop.steps_per_second,
         "kernels": int(len(model)),
-        "seconds": time.perf_counter() - t0,
-        "loss_final": float(np.mean(loop.losses[-10:])) if loop.losses else None,
-        "train_view_psnr": quality["psnr"],
-        "train_view_ssim": quality["ssim"],
+        "final_loss": float(np.mean(loop.losses[-10:])) if loop.losses else None,
         "views": len(views),
         "resolution": [views.width, views.height],
         "crop": options.crop,
         "spp": options.spp,
+        "device": str(dev),
     }
-    kernelset = model.to_kernelset(color_space="srgb", fitting=metrics)
-    return MultiViewFitResult(kernelset=kernelset, metrics=metrics, loop=loop)
+    kernelset = model.to_kernelset(color_space="srgb")
+    nbytes = kernelset_bytes(kernelset)
+    metrics["bytes_raw"], metrics["bytes_zip"] = nbytes["raw"], nbytes["zip"]
+    metrics["bytes_file"] = nbytes["file"]
+    metrics["spectra_bytes"] = spectra_bytes(spectra)
+    kernelset.fitting = {"task": "fit_multiview", "steps": loop.steps, "metrics": metrics}
+    timings = {
+        "fit_s": t_fit,
+        "eval_s": time.perf_counter() - t1,
+        "total_s": time.perf_counter() - t0,
+    }
+    return FitResult(
+        kernelset, metrics, timings, list(loop.losses), list(getattr(loop, "density_events", []))
+    )
 
 
 def _frozen(model: Any) -> Any:

@@ -37,20 +37,30 @@ def setup(tmp_path_factory):
 
 @pytest.mark.slow
 def test_fit_improves_held_out_psnr(setup):
-    from hktex_engine.config import FitParams
+    from hktex_engine.config import FitParams, KernelConfig
     from hktex_engine.fit_multiview import MultiViewOptions, evaluate_kernelset, fit_multiview
 
     mesh, spectra, train, test = setup
     opts = MultiViewOptions(crop=24, spp=2)
-    # a raised colour rate so that a handful of steps is enough to see the effect
-    base = dict(kernels=60, seed=0, densify=False, checkpoint_every=0, lr_colors=0.05, lr_base=0.02)
+    # wider kernels and a raised colour rate so that 60 kernels and a dozen steps show the effect
+    # (measured: held-out PSNR 13.0 -> 15.8 dB)
+    kc = KernelConfig(diffusion_time=0.01, sigma_b=0.3)
+    base = dict(
+        kernels=60,
+        seed=0,
+        densify=False,
+        checkpoint_every=0,
+        lr_colors=0.05,
+        lr_base=0.02,
+        kernel=kc,
+    )
     before = fit_multiview(mesh, spectra, train, FitParams(steps=0, **base), options=opts)
-    after = fit_multiview(mesh, spectra, train, FitParams(steps=16, **base), options=opts)
-    assert after.loop.losses[-1] < after.loop.losses[0] * 1.5  # finite, not diverging
+    after = fit_multiview(mesh, spectra, train, FitParams(steps=12, **base), options=opts)
+    assert after.losses[-1] < after.losses[0] * 1.5  # finite, not diverging
     p0 = evaluate_kernelset(spectra, before.kernelset, test, spp=8)["psnr"]
     p1 = evaluate_kernelset(spectra, after.kernelset, test, spp=8)["psnr"]
-    assert p1 > p0 + 0.5, (p0, p1)
-    assert after.metrics["kernels"] == 60 and after.metrics["steps"] == 16
+    assert p1 > p0 + 1.0, (p0, p1)
+    assert after.metrics["kernels"] == 60 and after.metrics["steps"] == 12
     assert np.isfinite(after.kernelset.colors).all()
 
 
