@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
@@ -38,6 +39,8 @@ THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
 SHARPNESS_RANGE = (10.0, 200.0)
 COLOR_RANGE = (-1.0, 1.0)
 BASE_RANGE = (0.0, 1.0)
+#: Points per checkpointed chunk when a differentiable batch is larger than this.
+GRAD_CHUNK_POINTS = 1024
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
 BARY_TOL = 1e-3
 
@@ -454,20 +457,55 @@ class HeatKernelModel(nn.Module):
         """``r_j(y) = h_j(y) w_j(y) / h_j(c_j)`` for candidates (P, C)."""
         if torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params()):
             uniq, local = torch.unique(cand, return_inverse=True)
-            coef, norm, nodes, weights, emb_c = self._spectral_terms(uniq)
+            terms = self._spectral_terms(uniq)
+            if face_ids.shape[0] > GRAD_CHUNK_POINTS:
+                # Large differentiable batches (multi-view ray batches): recompute each chunk's
+                # (P, C, K) intermediates in backward instead of keeping them all alive.
+                parts = [
+                    checkpoint(
+                        _pair_ratio,
+                        face_ids[sl],
+                        bary[sl],
+                        local[sl],
+                        *terms,
+                        self.field,
+                        self.config.sigma_b,
+                        use_reentrant=False,
+                    )
+                    for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
+                ]
+                return torch.cat(parts)
         else:
             self._ensure_cache()
-            coef, norm, nodes, weights, emb_c = self._terms
-            local = cand
-        phi_y = self.field.node_values(face_ids, bary)  # (P, G, K)
-        # coef_j . Phi_y[g] for every node g, then the kernel's own 4 nodes (see module doc).
-        picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
-        dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
-        h = (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
-        emb_y = self.field.embedding_at(face_ids, bary)
-        d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
-        decay = torch.exp(-d2 / (2.0 * self.config.sigma_b**2))
-        return h * decay / norm[local]
+            terms, local = self._terms, cand
+        return _pair_ratio(face_ids, bary, local, *terms, self.field, self.config.sigma_b)
+
+
+def _pair_ratio(
+    face_ids: torch.Tensor,
+    bary: torch.Tensor,
+    local: torch.Tensor,
+    coef: torch.Tensor,
+    norm: torch.Tensor,
+    nodes: torch.Tensor,
+    weights: torch.Tensor,
+    emb_c: torch.Tensor,
+    field: SpectralField,
+    sigma_b: float,
+) -> torch.Tensor:
+    """``r`` for points and their candidates ``local`` (rows of the per-kernel terms)."""
+    phi_y = field.node_values(face_ids, bary)  # (P, G, K)
+    # coef_j . Phi_y[g] for every node g, then the kernel's own 4 nodes (see module doc).
+    picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
+    dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
+    h = (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
+    emb_y = field.embedding_at(face_ids, bary)
+    d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
+    return h * torch.exp(-d2 / (2.0 * sigma_b**2)) / norm[local]
+
+
+def _slices(n: int, size: int) -> list[slice]:
+    return [slice(start, min(n, start + size)) for start in range(0, n, size)]
 
 
 def _long(x: torch.Tensor | np.ndarray, device: torch.device) -> torch.Tensor:

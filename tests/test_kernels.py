@@ -316,3 +316,19 @@ def test_kernelset_round_trip(spectra, field64):
     other = KernelSet(**{**ks.__dict__, "mesh_hash": "another"})
     with pytest.raises(Exception, match="another mesh"):
         HeatKernelModel.from_kernelset(other, field64)
+
+
+def test_large_grad_batches_are_checkpointed_with_equal_gradients(spectra, field64, monkeypatch):
+    from hktex_engine import kernels
+
+    kp = make_params(spectra, 12, seed=21)
+    face_ids, bary = random_points(spectra, 40, seed=22)
+    grads = []
+    for chunk in (10**6, 7):
+        monkeypatch.setattr(kernels, "GRAD_CHUNK_POINTS", chunk)
+        model = make_model(field64, kp)
+        out = model.albedo(face_ids, bary)
+        (out**2).sum().backward()
+        grads.append([p.grad.clone() for p in model.parameters()])
+    for a, b in zip(*grads, strict=True):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-10, atol=1e-12)
