@@ -169,6 +169,10 @@ class Supervisor:
         state = jobqueue.release(self.db, claim.job_id, claim.token, reason, refund=refund)
         if state is not None:
             log.info("job %s: %s -> %s", child.claim.job_id, reason, state)
+        if state in ("failed", "cancelled"):
+            from hktex_server.tasks import drop_checkpoints
+
+            drop_checkpoints(self.settings, claim.job_id)
         child.log_file.close()
         self.children.pop(child.claim.job_id, None)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -134,7 +135,7 @@ def run_fit(ctx: TaskContext) -> Outcome:
     )
     spectra = load_spectra(store.abs(spectra_row.path), expect_mesh_hash=mesh.content_hash)
     params = fit_params(job.params.get("params", {}))
-    checkpoints = store.root / "checkpoints" / job.id  # a retried job resumes from here
+    checkpoints = checkpoint_dir(ctx.settings, job.id)  # a retried job resumes from here
     if job.task == "fit_uv":
         from hktex_engine.fit_uv import fit_uv
 
@@ -223,6 +224,15 @@ def run_sleep(ctx: TaskContext) -> Outcome:
 
 
 # ---------------------------------------------------------------- helpers
+
+
+def checkpoint_dir(settings: Settings, job_id: str) -> Path:
+    return Path(settings.data_dir).resolve() / "checkpoints" / job_id
+
+
+def drop_checkpoints(settings: Settings, job_id: str) -> None:
+    """Once a job is final its checkpoints serve nobody (a new job has a new id)."""
+    shutil.rmtree(checkpoint_dir(settings, job_id), ignore_errors=True)
 
 
 def _get(db: Database, model: type, key: str | None, what: str):

@@ -166,7 +166,12 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, _on_sigterm)
     db = Database(settings.resolved_database_url())
     try:
-        return run_job(settings, db, args.job_id, token)
+        rc = run_job(settings, db, args.job_id, token)
+        if rc == 0:  # a final state was written
+            from hktex_server.tasks import drop_checkpoints
+
+            drop_checkpoints(settings, args.job_id)
+        return rc
     except Terminated:
         print(f"job {args.job_id}: terminated", flush=True)
         return EXIT_TERMINATED

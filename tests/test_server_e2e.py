@@ -71,6 +71,7 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
         )
         assert done["state"] == "succeeded", done["error"]
         assert done["progress"]["step"] == done["progress"]["total"] > 0
+        assert not (settings.data_dir / "checkpoints" / job["id"]).exists()  # cleaned up
         spectra = c.get(f"/v1/spectra/{done['spectra_id']}").json()
         assert spectra["state"] == "ready" and spectra["summary"]["k"] == SPECTRA["k"]
         # a second request for the same spectra is answered at once
