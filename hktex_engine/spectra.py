@@ -8,15 +8,21 @@ from __future__ import annotations
 
 import fcntl
 import json
+import multiprocessing
 import os
 import shutil
 import tempfile
 import time
 import uuid
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+import scipy.sparse as sp
 
 from hktex_engine.alignment import align_basis
 from hktex_engine.config import SpectralConfig
@@ -174,11 +180,68 @@ def _operator_key(theta: float, eta: float) -> tuple[float, float]:
     return (round(float(np.mod(theta, np.pi)), 12), float(eta))
 
 
+def _solve_timed(L: sp.csr_matrix, mass: np.ndarray, k: int) -> tuple:
+    """One cold solve, timed (runs in a worker process when ``workers > 1``)."""
+    t0 = time.perf_counter()
+    vals, vecs = eigs_cold(L, mass, k)
+    return vals, vecs, time.perf_counter() - t0
+
+
+def _cold_solutions(
+    operators: Iterator[sp.csr_matrix], mass: np.ndarray, k: int, workers: int
+) -> Iterator[tuple]:
+    """Cold solves of ``operators`` in order; with ``workers > 1`` in a process pool.
+
+    At most ``workers + 1`` results are in flight, so memory stays bounded by a few bases
+    however large the grid. Worker processes are spawned (not forked) so no BLAS thread
+    pool state is inherited.
+    """
+    if workers <= 1:
+        for L in operators:
+            yield _solve_timed(L, mass, k)
+        return
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        pending: deque = deque()
+        try:
+            for L in operators:
+                pending.append(pool.submit(_solve_timed, L, mass, k))
+                if len(pending) > workers:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+
+def _node_plan(thetas: np.ndarray, etas: np.ndarray) -> list[tuple[int, float, float, str, int]]:
+    """For each node in order: (g, theta, eta, source, holder) with source 'iso', 'copy' (of
+    node ``holder``, the same operator) or 'solve'."""
+    plan = []
+    seen: dict[tuple[float, float], int] = {}
+    S = len(etas)
+    for a, theta in enumerate(thetas):
+        for s, eta in enumerate(etas):
+            g = a * S + s
+            key = _operator_key(theta, eta)
+            if key == (-1.0, 0.0):
+                plan.append((g, float(theta), float(eta), "iso", -1))
+            elif key in seen:
+                plan.append((g, float(theta), float(eta), "copy", seen[key]))
+            else:
+                seen[key] = g
+                plan.append((g, float(theta), float(eta), "solve", -1))
+    return plan
+
+
 def compute_spectra(
     mesh: Mesh,
     config: SpectralConfig | None = None,
     progress: Progress | None = None,
     out_dir: str | Path | None = None,
+    solver: Literal["cold", "warm"] = "cold",
+    workers: int = 1,
 ) -> Spectra:
     """Compute the aligned ALBO grid and the isotropic spectrum of ``mesh``.
 
@@ -186,9 +249,18 @@ def compute_spectra(
     ``out_dir`` eigenvectors stream to disk while they are computed, the directory is
     published atomically, and the memory-mapped result is returned: the way to go for big
     meshes, whose grid (n x 49 x 256 floats) can exceed the memory one wants to use.
+
+    ``solver``: ``cold`` solves each distinct operator by ARPACK shift-invert (exact; nodes
+    are independent, so ``workers`` processes can share them); ``warm`` runs a shift-invert
+    block iteration from the previous node's basis (sequential; measured slower at equal
+    accuracy, see docs/spectra.md). Nodes whose operator equals an earlier node's
+    (``theta = pi`` is ``theta = 0``; ``eta = 0`` is isotropic) are never solved twice.
+    Alignment is always sequential along the chain of ALGORITHM.md section 3.
     """
     config = config or SpectralConfig()
     progress = progress or NullProgress()
+    if solver not in ("cold", "warm"):
+        raise ValueError(f"unknown solver {solver!r}")
     t_start = time.perf_counter()
     V = np.asarray(mesh.vertices, dtype=np.float64)
     F = np.asarray(mesh.faces, dtype=np.int64)
@@ -213,6 +285,7 @@ def compute_spectra(
         sink = _FileSink(staging, n, G, K, config.evecs_dtype)
     else:
         sink = _MemorySink(n, G, K, config.evecs_dtype)
+    cold_iter: Iterator[tuple] | None = None
     try:
         t0 = time.perf_counter()
         mass = lumped_mass(V, F)
@@ -221,72 +294,76 @@ def compute_spectra(
         timings["operators_s"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        p = _work_size(config, n)
+        p = _work_size(config, n) if solver == "warm" else K
         iso_vals, iso_vecs = eigs_cold(cotangent_stiffness(V, F), mass, max(p, need))
-        iso_start = iso_vecs[:, :p]
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
         check_cancel(progress)
 
+        plan = _node_plan(thetas, etas)
+        if solver == "cold":
+            cold_iter = _cold_solutions(
+                (assembler.stiffness(th, et) for _, th, et, src, _ in plan if src == "solve"),
+                mass,
+                K,
+                workers,
+            )
         evals = np.empty((G, K))
         solve_log: list[dict] = []
-        solved: dict[tuple[float, float], int] = {}  # operator key -> node that holds it
-        iso_ref = iso_vecs[:, :K]
-        first_of_prev_angle: tuple[np.ndarray, np.ndarray] | None = None  # (aligned K, raw p)
+        # the aligned reference and the warm start of the next node in the chain
+        iso_pair = (iso_vecs[:, :K], iso_vecs[:, :p])
+        first_of_prev_angle: tuple[np.ndarray, np.ndarray] | None = None
+        prev: tuple[np.ndarray, np.ndarray] | None = None
         t_solve = t_align = 0.0
-        for a, theta in enumerate(thetas):
-            prev: tuple[np.ndarray, np.ndarray] | None = None
-            for s, eta in enumerate(etas):
-                g = a * S + s
-                if s == 0:
-                    ref, start = first_of_prev_angle or (iso_ref, iso_start)
-                else:
-                    ref, start = prev
-                key = _operator_key(theta, eta)
-                t0 = time.perf_counter()
-                if key == (-1.0, 0.0):
-                    vals, vecs = iso_vals[:p], iso_vecs[:, :p]
-                    info = SolveInfo("isotropic", 0, 0.0)
-                elif key in solved:  # same operator as an earlier node: reuse, realign
-                    h = solved[key]
-                    vals, vecs = evals[h], sink.get(h)
-                    info = SolveInfo(f"copy of node {h}", 0, 0.0)
-                else:
-                    L = assembler.stiffness(theta, eta)
-                    vals, vecs, info = eigs_warm(L, mass, start, K)
-                    solved[key] = g
-                info.seconds = time.perf_counter() - t0
-                t_solve += info.seconds
-                t0 = time.perf_counter()
-                aligned, aligned_vals, ainfo = align_basis(
-                    ref, vecs[:, :K], vals[:K], mass, rotation=config.rotation
-                )
-                t_align += time.perf_counter() - t0
-                evals[g] = aligned_vals
-                sink.put(g, aligned)
-                prev = (aligned, vecs if vecs.shape[1] >= p else start)
-                if s == 0:
-                    first_of_prev_angle = prev
-                solve_log.append(
-                    {
-                        "node": g,
-                        "theta": float(theta),
-                        "eta": float(eta),
-                        "method": info.method,
-                        "iterations": info.iterations,
-                        "max_residual": info.max_residual,
-                        "seconds": round(info.seconds, 4),
-                        "alignment_mean_overlap": ainfo.mean_overlap,
-                    }
-                )
-                progress.update(g + 2, total, stage="grid", node=g)
-                check_cancel(progress)
+        for g, theta, eta, source, holder in plan:
+            s = g % S
+            ref, start = (first_of_prev_angle or iso_pair) if s == 0 else prev
+            t0 = time.perf_counter()
+            if source == "iso":
+                vals, vecs = iso_vals[:p], iso_vecs[:, :p]
+                info = SolveInfo("isotropic", 0, 0.0)
+            elif source == "copy":  # same operator as an earlier node: reuse, realign
+                vals, vecs = evals[holder], sink.get(holder)
+                info = SolveInfo(f"copy of node {holder}", 0, 0.0)
+            elif cold_iter is not None:
+                vals, vecs, seconds = next(cold_iter)
+                info = SolveInfo("cold", 0, 0.0, seconds)
+            else:
+                L = assembler.stiffness(theta, eta)
+                vals, vecs, info = eigs_warm(L, mass, start, K)
+            info.seconds = time.perf_counter() - t0
+            t_solve += info.seconds
+            t0 = time.perf_counter()
+            aligned, aligned_vals, ainfo = align_basis(
+                ref, vecs[:, :K], vals[:K], mass, rotation=config.rotation
+            )
+            t_align += time.perf_counter() - t0
+            evals[g] = aligned_vals
+            sink.put(g, aligned)
+            prev = (aligned, vecs if vecs.shape[1] >= p else start)
+            if s == 0:
+                first_of_prev_angle = prev
+            solve_log.append(
+                {
+                    "node": g,
+                    "theta": theta,
+                    "eta": eta,
+                    "method": info.method,
+                    "iterations": info.iterations,
+                    "max_residual": info.max_residual,
+                    "seconds": round(info.seconds, 4),
+                    "alignment_mean_overlap": ainfo.mean_overlap,
+                }
+            )
+            progress.update(g + 2, total, stage="grid", node=g)
+            check_cancel(progress)
         timings["solve_s"] = t_solve
         timings["align_s"] = t_align
 
         iso_vals_k = iso_vals[: config.k_iso].copy()
         iso_vecs_k = np.ascontiguousarray(iso_vecs[:, : config.k_iso])
         manifest = _manifest(mesh, config, n, len(F), G, timings, solve_log)
+        manifest["solver"] = {"method": solver, "workers": workers, "nodes": solve_log}
         spectra = Spectra(
             vertices=V,
             faces=F,
@@ -316,6 +393,8 @@ def compute_spectra(
         staging = None
         return load_spectra(out_dir)
     finally:
+        if cold_iter is not None:
+            cold_iter.close()
         if isinstance(sink, _FileSink):
             sink.close()
         if staging is not None:
@@ -352,7 +431,7 @@ def _manifest(
             "hktex": getattr(hktex_engine, "__version__", "0"),
         },
         "timings": timings,
-        "solver": log,
+        "solver": {"nodes": log},
         "created_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 

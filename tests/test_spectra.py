@@ -104,6 +104,22 @@ def test_warm_solver_matches_cold_from_a_neighbour_start(mesh):
     np.testing.assert_allclose(vals[:24], cold, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.parametrize("kwargs", [{"solver": "warm"}, {"workers": 2}])
+def test_warm_solver_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs):
+    other = compute_spectra(mesh, TINY, **kwargs)
+    assert other.manifest["solver"]["nodes"][1]["method"] == kwargs.get("solver", "cold")
+    src = np.array([0, 200, 400])
+    for g in range(tiny.evals.shape[0]):
+        a, b = np.sort(other.evals[g]), np.sort(tiny.evals[g])
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9 * b.max())
+        h_a = _heat(tiny.evals[g], tiny.evecs[:, g, :], src, 0.1)
+        h_b = _heat(other.evals[g], other.evecs[:, g, :], src, 0.1)
+        assert np.linalg.norm(h_a - h_b) < 1e-4 * np.linalg.norm(h_a)
+    # theta = pi is theta = 0: copied, not solved again
+    methods = [e["method"] for e in tiny.manifest["solver"]["nodes"]]
+    assert methods[4:] == ["copy of node 0", "copy of node 1"]
+
+
 def test_too_few_vertices_is_a_spectra_error(mesh):
     with pytest.raises(SpectraError):
         compute_spectra(mesh, SpectralConfig(angles=2, anisotropies=(1.0,), k=700, k_iso=9))
@@ -165,7 +181,10 @@ def test_eigen_clusters_groups_near_equal_values():
 
 
 def _heat(evals, evecs, src, t):
-    return evecs @ (np.exp(-t * evals) * evecs[src])
+    """Truncated spectral heat kernels from the source vertex/vertices ``src``, (n, S)."""
+    evecs = np.asarray(evecs, dtype=np.float64)
+    src = np.atleast_1d(src)
+    return evecs @ (np.exp(-t * evals)[:, None] * evecs[src].T)
 
 
 def _continuity(tiny, evecs, t=0.05, sources=(0, 100, 300)):

@@ -54,6 +54,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=s.tangent_field,
         help="reference direction u_ref",
     )
+    p.add_argument(
+        "--solver",
+        choices=("cold", "warm"),
+        default="cold",
+        help="cold: ARPACK per node (default); warm: block iteration from the previous node",
+    )
+    p.add_argument("--workers", type=int, default=1, help="processes for cold node solves")
     p.add_argument("--max-vertices", type=int, default=60000, help="refuse bigger meshes")
     p.set_defaults(func=run)
 
@@ -72,6 +79,8 @@ def run(args: argparse.Namespace) -> dict:
         evecs_dtype=args.evecs_dtype,
         tangent_field=args.tangent_field,
     )
+    if args.workers < 1:
+        raise ValueError("--workers must be >= 1")
     if not args.mesh.is_file():
         raise FileNotFoundError(f"mesh file not found: {args.mesh}")
     if args.output.exists() and not (args.output / "manifest.json").is_file():
@@ -81,7 +90,9 @@ def run(args: argparse.Namespace) -> dict:
     t_load = time.perf_counter() - t0
     bar = TerminalProgress("spectra")
     try:
-        spectra = compute_spectra(mesh, config, bar, out_dir=args.output)
+        spectra = compute_spectra(
+            mesh, config, bar, out_dir=args.output, solver=args.solver, workers=args.workers
+        )
     finally:
         bar.close()
     manifest = spectra.manifest
