@@ -751,6 +751,15 @@ def parse_view(view: Any, vertices: np.ndarray, fov: float = 40.0) -> Camera:
     return orbit_camera(vertices, float(az), float(el), fov)
 
 
+def _cameras(views: Any, vertices: np.ndarray) -> tuple[bool, list[Camera]]:
+    """(single?, cameras) from one view, a list of views, or a view dataset (``.cameras``)."""
+    if hasattr(views, "cameras"):
+        return False, list(views.cameras)
+    if isinstance(views, list):
+        return False, [parse_view(v, vertices) for v in views]
+    return True, [parse_view(views, vertices)]
+
+
 def query_albedo_fn(query: Any) -> AlbedoFn:
     """Wrap an inference ``AlbedoQuery`` (numpy in/out) as a torch albedo function."""
 
@@ -783,15 +792,15 @@ def render_kernelset(
 ) -> np.ndarray | list[np.ndarray]:
     """Render a kernel set on its spectra's mesh: linear RGB (H, W, 3), or a list for a list.
 
-    ``views`` is one view (Camera, (azimuth, elevation), "AZ,EL", index) or a list of them.
+    ``views`` is one view (Camera, (azimuth, elevation), "AZ,EL", index), a list of them, or
+    a view dataset (:class:`~hktex_engine.views.Views`: its cameras, in order).
     """
     from hktex_engine.query import AlbedoQuery
 
     query = AlbedoQuery(spectra, kernelset, device=device)
     V = file_frame_vertices(spectra)
     scene = RenderScene(V, spectra.faces, settings, albedo_fn=query_albedo_fn(query))
-    single = not isinstance(views, list)
-    cams = [parse_view(v, V) for v in ([views] if single else views)]
+    single, cams = _cameras(views, V)
     images = [scene.render(c, seed=seed) for c in cams]
     return images[0] if single else images
 
@@ -807,8 +816,7 @@ def render_uv(
         raise RenderError("the mesh has no UV texture to render")
     V = mesh.to_file_units(mesh.vertices)
     scene = RenderScene(V, mesh.faces, settings, corner_uvs=mesh.corner_uvs, texture=mesh.texture)
-    single = not isinstance(views, list)
-    cams = [parse_view(v, V) for v in ([views] if single else views)]
+    single, cams = _cameras(views, V)
     images = [scene.render(c, seed=seed) for c in cams]
     return images[0] if single else images
 

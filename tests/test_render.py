@@ -198,3 +198,32 @@ def test_parse_view_and_png(R):
     png = R.encode_png(np.full((4, 5, 3), R.srgb_to_linear(np.float32(0.5))))
     arr = np.asarray(Image.open(io.BytesIO(png)))
     assert arr.shape == (4, 5, 3) and (arr == 128).all()
+
+
+def test_principled_and_envmap(R, tmp_path):
+    import mitsuba as mi
+
+    from hktex_engine.synthetic import icosphere
+
+    V, F = icosphere(1)
+    fn = lambda f, b: torch.full((len(f), 3), 0.6)  # noqa: E731
+    cam = R.orbit_camera(V, 0, 10)
+    diffuse = R.RenderScene(V, F, R.RenderSettings(16, 16, spp=8), albedo_fn=fn).render(cam)
+    principled = R.RenderScene(
+        V, F, R.RenderSettings(16, 16, spp=8, bsdf="principled"), albedo_fn=fn
+    ).render(cam)
+    assert np.isfinite(principled).all() and not np.allclose(principled, diffuse)
+    env = np.zeros((8, 16, 3), np.float32)
+    env[:4] = 2.0  # bright sky, black ground
+    path = tmp_path / "env.exr"
+    mi.Bitmap(env).write(str(path))
+    lit = R.RenderScene(
+        V,
+        F,
+        R.RenderSettings(16, 16, spp=8, lighting=R.Lighting("envmap", envmap=str(path))),
+        albedo_fn=fn,
+    ).render(cam)
+    m = R.RenderScene(V, F, R.RenderSettings(16, 16, spp=1), albedo_fn=fn).hit_buffer(cam)[2]
+    rows = np.flatnonzero(m.any(1))
+    top, bottom = lit[rows[0] + 1][m[rows[0] + 1]], lit[rows[-1] - 1][m[rows[-1] - 1]]
+    assert top.mean() > bottom.mean()  # lit from above
