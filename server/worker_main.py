@@ -133,6 +133,7 @@ def run_job(settings: Settings, db: Database, job_id: str, token: str) -> int:
             print(f"job {job_id}: lease lost or orphaned, stopping", flush=True)
             return EXIT_LOST
         jobqueue.finish(db, job_id, token, "cancelled", error="cancelled by request")
+        print(f"job {job_id}: cancelled (cooperative stop)", flush=True)
         return 0
     except (HKTexError, ValueError, FileNotFoundError) as exc:  # bad input: no retry helps
         message = " ".join(str(exc).split()) or type(exc).__name__
