@@ -176,6 +176,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
     ap.add_argument(
+        "--only-million",
+        action="store_true",
+        help="skip to the million-point memory run; results go to kernels_million.json/.md",
+    )
+    ap.add_argument(
         "--time-budget",
         type=float,
         default=540.0,
@@ -221,6 +226,8 @@ def main() -> None:
     }
     print(json.dumps(res["setup"]), flush=True)
     save(res, args.out)
+    if args.only_million:
+        return million_only(res, query, spectra, args, rng)
     res["knn"] = bench_knn(query, spectra, args.queries, ks.kernel_config.k_search, rng)
     print("knn", json.dumps(res["knn"]), flush=True)
     save(res, args.out)
@@ -275,6 +282,39 @@ def main() -> None:
         print("million", json.dumps(res["million"]), flush=True)
     res["total_s"] = round(time.perf_counter() - started, 1)
     save(res, args.out)
+
+
+def million_only(res: dict, query: AlbedoQuery, spectra: Spectra, args, rng) -> None:
+    """The whole requested point count, no time budget: peak memory is what this is for."""
+    fm, bm = sample_surface(spectra.vertices, spectra.faces, args.million, rng)
+    base_mb = rss_mb("VmRSS")
+    peak_rss_reset()
+    t_m, _ = timed(lambda: query.colors(fm, bm))
+    peak = rss_mb("VmHWM")
+    res["million"] = {
+        "points": args.million,
+        "seconds": round(t_m, 1),
+        "points_per_s": round(args.million / t_m),
+        "rss_before_mb": round(base_mb, 1),
+        "peak_rss_mb": round(peak, 1),
+        "peak_above_before_mb": round(peak - base_mb, 1),
+        "inputs_and_output_mb": round((fm.nbytes + bm.nbytes + args.million * 12) / 2**20, 1),
+    }
+    print("million", json.dumps(res["million"]), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "kernels_million.json").write_text(json.dumps(res, indent=1))
+    m, s = res["million"], res["setup"]
+    (args.out / "kernels_million.md").write_text(
+        "# Kernel query memory for a million points (benchmarks/kernels.py --only-million)\n\n"
+        f"Command: `{res['command']}`; machine as in kernels.md (load average at start "
+        f"{res['machine']['load_average_at_start']}, {res['machine']['torch_threads']} threads).\n"
+        f"Grid {s['grid_nodes']} nodes x K = {s['k']}, {s['vertices']} vertices, {s['kernels']} "
+        f"kernels, K_s = {s['k_search']}, chunk {s['chunk_points']} points.\n\n"
+        f"{m['points']} points in {m['seconds']} s ({m['points_per_s']} points/s); process RSS "
+        f"{m['rss_before_mb']} MB before (spectra arrays held twice: numpy and the device copy), "
+        f"peak {m['peak_rss_mb']} MB, {m['peak_above_before_mb']} MB above the warm query state "
+        f"(inputs + output {m['inputs_and_output_mb']} MB).\n"
+    )
 
 
 def save(res: dict, out: Path) -> None:

@@ -410,7 +410,7 @@ class HeatKernelModel(nn.Module):
         ``aux`` holds ``indices`` (P, K_c) global kernel ids and ``rho`` (P, K_c).
         """
         face_ids = _long(face_ids, self.field.device)
-        bary = _float(bary, self.field.device, self.field.dtype)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
         self._ensure_knn()
         k_s = min(self.config.k_search, len(self))
         cand = self._knn.search(self.field.embedding_at(face_ids, bary), k_s)
@@ -421,7 +421,7 @@ class HeatKernelModel(nn.Module):
     ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Albedo with every kernel a candidate (no KNN); for tests and tiny sets."""
         face_ids = _long(face_ids, self.field.device)
-        bary = _float(bary, self.field.device, self.field.dtype)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
         return self._blend(face_ids, bary, None, return_aux)
 
     def responses(
@@ -433,7 +433,7 @@ class HeatKernelModel(nn.Module):
         under ``torch.no_grad`` it reuses the cached per-kernel coefficients.
         """
         face_ids = _long(face_ids, self.field.device)
-        bary = _float(bary, self.field.device, self.field.dtype)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
         if cand is None:
             cand = torch.arange(len(self), device=self.field.device).expand(face_ids.shape[0], -1)
         r = self._ratio(face_ids, bary, cand)
@@ -510,6 +510,15 @@ def _slices(n: int, size: int) -> list[slice]:
 
 def _long(x: torch.Tensor | np.ndarray, device: torch.device) -> torch.Tensor:
     return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x).to(device, torch.long)
+
+
+def _query_float(
+    x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype
+) -> torch.Tensor:
+    """Query inputs keep their autograd history (gradients may flow to query barycentrics)."""
+    if torch.is_tensor(x):
+        return x.to(device, dtype)
+    return torch.as_tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)
 
 
 def _float(x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:

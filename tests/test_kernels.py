@@ -332,3 +332,13 @@ def test_large_grad_batches_are_checkpointed_with_equal_gradients(spectra, field
         grads.append([p.grad.clone() for p in model.parameters()])
     for a, b in zip(*grads, strict=True):
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-10, atol=1e-12)
+
+
+def test_gradient_reaches_query_barycentrics(spectra, field64):
+    kp = make_params(spectra, 8, seed=23)
+    model = make_model(field64, kp)
+    face_ids, bary = random_points(spectra, 5, seed=24)
+    face_ids = torch.as_tensor(face_ids)
+    cand = torch.arange(8).expand(5, -1)
+    b = torch.as_tensor(bary).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda q: model.responses(face_ids, q, cand)[0], (b,))
