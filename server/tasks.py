@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -211,6 +212,8 @@ def run_sleep(ctx: TaskContext) -> Outcome:
         with open(marker, "a") as f:
             gpus = os.environ.get("CUDA_VISIBLE_DEVICES", "?")
             f.write(f"{ctx.job.id} {ctx.job.attempts} {gpus or '-'}\n")
+    if p.get("ignore_sigterm"):  # a process wedged in native code: only SIGKILL stops it
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     for step in range(steps):
         if not p.get("ignore_cancel"):
             check_cancel(ctx.progress)

@@ -141,6 +141,18 @@ def test_cancel_deaf_job_is_terminated(proc_backend):
     assert "terminated" in log and "cooperative" not in log  # SIGTERM after the grace period
 
 
+def test_cancel_wedged_job_is_killed(proc_backend):
+    """Deaf to the flag and to SIGTERM: SIGKILL of the process group ends it."""
+    settings, db = proc_backend
+    jid = add_sleep_job(db, steps=200, seconds=40, ignore_cancel=True, ignore_sigterm=True)
+    with SupervisorInThread(settings):
+        wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
+        jobqueue.request_cancel(db, "local", jid)
+        wait_for(lambda: _state(db, jid) == "cancelled", 30, "cancelled")
+    log = _log(settings, jid)
+    assert "terminated" not in log and "cooperative" not in log
+
+
 def test_cancel_queued_job_is_immediate(backend):
     _settings, db = backend
     jid = add_sleep_job(db)
