@@ -37,7 +37,7 @@ import numpy as np
 from hktex_client import AsyncClient, Client
 
 SPECTRAL = {"angles": 3, "anisotropies": [1.0, 15.0, 100.0], "k": 32, "k_iso": 17}
-FIT = {"kernels": 300, "max_kernels": 600, "steps": 200, "seed": 0}
+FIT = {"kernels": 300, "max_kernels": 1200, "steps": 300, "seed": 0, "eval_points": 5000}
 
 
 def _free_port() -> int:
@@ -47,7 +47,7 @@ def _free_port() -> int:
 
 
 @contextlib.contextmanager
-def serve(data_dir: Path, workers: int) -> Iterator[str]:
+def serve(data_dir: Path, workers: int, threads: int) -> Iterator[str]:
     """``hktex serve`` in a child process (its own process group); yields the base URL."""
     port = _free_port()
     cmd = [
@@ -64,7 +64,12 @@ def serve(data_dir: Path, workers: int) -> Iterator[str]:
         "--workers",
         str(workers),
     ]
-    env = {**os.environ, "HKTEX_TOKENS": ""}
+    # Threads pinned per process (docs/client.md: spinning OpenMP threads on a loaded 2-core
+    # machine cost 10x); the API process and each job process get ``threads``.
+    threads_env = {
+        v: str(threads) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    }
+    env = {**os.environ, **threads_env, "HKTEX_TOKENS": ""}
     log = (data_dir / "serve.log").open("wb")
     proc = subprocess.Popen(
         cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
@@ -261,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=10_000)
     parser.add_argument("--duration", type=float, default=30.0)
     parser.add_argument("--health-duration", type=float, default=20.0)
+    parser.add_argument("--threads", type=int, default=1, help="CPU threads per process")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = parser.parse_args(argv)
     command = "python benchmarks/service.py " + shlex.join(
@@ -269,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="hktex-bench-") as tmp:
         work = Path(tmp)
         (work / "data").mkdir()
-        with serve(work / "data", workers=2) as url:
+        with serve(work / "data", workers=2, threads=args.threads) as url:
             t0 = time.monotonic()
             ks_id, n_faces, ks_info = fit_kernelset(url, work)
             ks_info["setup_s"] = round(time.monotonic() - t0, 1)
