@@ -110,6 +110,20 @@ def test_upload_validate_dedup_list_delete(server, mesh_files):
         assert c.get(f"/v1/meshes/{other_tex.json()['id']}").status_code == 404
 
 
+def test_concurrent_identical_uploads_get_one_id(server, mesh_files):
+    from concurrent.futures import ThreadPoolExecutor
+
+    def send(_):
+        with client(server, BOB) as c:
+            return upload(c, mesh_files["blob"], name="same.obj")
+
+    with ThreadPoolExecutor(4) as pool:
+        answers = list(pool.map(send, range(4)))
+    assert {r.status_code for r in answers} <= {200, 201}
+    assert [r.status_code for r in answers].count(201) == 1
+    assert len({r.json()["id"] for r in answers}) == 1
+
+
 def test_owner_isolation(server, mesh_files):
     with client(server) as alice, client(server, BOB) as bob:
         mid = upload(alice, mesh_files["patch"]).json()["id"]

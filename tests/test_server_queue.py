@@ -354,3 +354,20 @@ def test_migrations_match_the_models(backend):
     with db.engine.connect() as conn:
         diff = compare_metadata(MigrationContext.configure(conn), Base.metadata)
     assert diff == []
+
+
+def test_lost_lease_stops_the_worker(proc_backend):
+    """If the lease moves on (reaped, re-claimed elsewhere), this run must stop publishing."""
+    from sqlalchemy import update
+
+    settings, db = proc_backend
+    jid = add_sleep_job(db, steps=100, seconds=30)
+    with SupervisorInThread(settings) as sup:
+        pid = wait_for(lambda: job(db, jid).pid, 30, "worker pid")
+        wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
+        with db.write() as s:
+            s.execute(update(JobRow).where(JobRow.id == jid).values(lease_token="someone-else"))
+        wait_for(lambda: not _alive(pid), 30, "the worker to stop")
+        wait_for(lambda: jid not in sup.sup.children, 30, "the supervisor to forget it")
+    row = job(db, jid)
+    assert row.state == "running" and row.lease_token == "someone-else"  # untouched
