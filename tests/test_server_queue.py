@@ -134,7 +134,7 @@ def test_cancel_deaf_job_is_terminated(proc_backend):
     settings, db = proc_backend
     jid = add_sleep_job(db, steps=200, seconds=40, ignore_cancel=True)
     with SupervisorInThread(settings):
-        wait_for(lambda: job(db, jid).pid, 30, "worker pid")
+        wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
         jobqueue.request_cancel(db, "local", jid)
         wait_for(lambda: _state(db, jid) == "cancelled", 30, "cancelled")
     log = _log(settings, jid)
