@@ -299,9 +299,9 @@ def fit_multiview(
     rng = np.random.default_rng(params.seed)
     model = initial_model(spectra, scene, views, params, options, rng, dev)
     objective = MultiViewObjective(scene, views, options)
-    vertices = torch.as_tensor(np.asarray(spectra.vertices), dtype=torch.float32, device=dev)
-    faces = torch.as_tensor(np.asarray(spectra.faces, dtype=np.int64), device=dev)
-    frames = torch.as_tensor(np.asarray(spectra.face_frames), dtype=torch.float32, device=dev)
+    vertices = torch.as_tensor(np.array(spectra.vertices, dtype=np.float32), device=dev)
+    faces = torch.as_tensor(np.array(spectra.faces, dtype=np.int64), device=dev)
+    frames = torch.as_tensor(np.array(spectra.face_frames, dtype=np.float32), device=dev)
     tracer = SurfaceTracer(spectra.vertices, spectra.faces, device=dev)
     fingerprint = {
         "task": "fit_multiview",
