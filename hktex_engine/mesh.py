@@ -392,7 +392,7 @@ def _obj_material_texture(
 ) -> np.ndarray | None:
     """The diffuse map (map_Kd) of the first material the OBJ uses, if any can be found."""
     for lib in mtllibs:
-        mtl_path = path.parent / lib
+        mtl_path = _inside_folder(path.parent, lib, "mtllib")
         if not mtl_path.is_file():
             continue
         current = None
@@ -409,11 +409,24 @@ def _obj_material_texture(
         if not maps:
             continue
         name = next((m for m in materials_used if m in maps), next(iter(maps)))
-        image = mtl_path.parent / maps[name]
+        image = _inside_folder(path.parent, str(mtl_path.parent / maps[name]), "map_Kd")
         if not image.is_file():
             raise TextureError(f"{mtl_path.name}: map_Kd {maps[name]!r} not found")
         return load_texture(image)
     return None
+
+
+def _inside_folder(folder: Path, reference: str, what: str) -> Path:
+    """Resolve a file named inside a mesh file, refusing any that leaves the mesh's folder.
+
+    A hostile upload could otherwise name ``../../etc/passwd`` or an absolute path as its
+    material or texture and make the service read files beyond the upload.
+    """
+    root = folder.resolve()
+    target = (folder / reference).resolve()
+    if not target.is_relative_to(root):
+        raise TextureError(f"{what} {reference!r} points outside the mesh's folder")
+    return target
 
 
 def _precheck_counts(path: Path, kind: str, limit: int) -> None:

@@ -372,3 +372,27 @@ def test_obj_statement_counts_are_capped_before_parsing(tmp_path):
     path = write(tmp_path, "many.obj", "v 0 0 0\n" * 100 + "f 1 2 3\n")
     with pytest.raises(TooManyVerticesError, match="100 vertex"):
         load_mesh(path, max_vertices=10)
+
+
+@pytest.mark.parametrize(
+    ("mtllib", "map_kd"),
+    [("../outside.mtl", "tex.png"), ("inside.mtl", "../tex.png"), ("inside.mtl", "/etc/hostname")],
+)
+def test_obj_material_paths_cannot_leave_the_mesh_folder(tmp_path, mtllib, map_kd):
+    """A hostile upload must not make the loader read files beyond its own folder."""
+    from PIL import Image
+
+    from hktex_engine.errors import TextureError
+
+    folder = tmp_path / "upload"
+    folder.mkdir()
+    Image.new("RGB", (4, 4), (255, 0, 0)).save(tmp_path / "tex.png")
+    for mtl in (tmp_path / "outside.mtl", folder / "inside.mtl"):
+        mtl.write_text(f"newmtl m\nmap_Kd {map_kd}\n")
+    obj = folder / "tri.obj"
+    obj.write_text(
+        f"mtllib {mtllib}\nv 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n"
+        "usemtl m\nf 1/1 2/2 3/3\n"
+    )
+    with pytest.raises(TextureError, match="outside the mesh's folder"):
+        load_mesh(obj)
