@@ -21,11 +21,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import torch
 from torch import nn
-from torch.utils.checkpoint import checkpoint
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
@@ -461,17 +461,9 @@ class HeatKernelModel(nn.Module):
             if face_ids.shape[0] > GRAD_CHUNK_POINTS:
                 # Large differentiable batches (multi-view ray batches): recompute each chunk's
                 # (P, C, K) intermediates in backward instead of keeping them all alive.
+                fn = partial(_pair_ratio, field=self.field, sigma_b=self.config.sigma_b)
                 parts = [
-                    checkpoint(
-                        _pair_ratio,
-                        face_ids[sl],
-                        bary[sl],
-                        local[sl],
-                        *terms,
-                        self.field,
-                        self.config.sigma_b,
-                        use_reentrant=False,
-                    )
+                    _Recompute.apply(fn, face_ids[sl], bary[sl], local[sl], *terms)
                     for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
                 ]
                 return torch.cat(parts)
@@ -502,6 +494,33 @@ def _pair_ratio(
     emb_y = field.embedding_at(face_ids, bary)
     d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
     return h * torch.exp(-d2 / (2.0 * sigma_b**2)) / norm[local]
+
+
+class _Recompute(torch.autograd.Function):
+    """Activation checkpointing for one chunk: run ``fn`` without a graph, rebuild it in backward.
+
+    Written here rather than ``torch.utils.checkpoint`` because the latter imports
+    ``torch._dynamo`` on first use, which cost ~10 s per process on this machine.
+    """
+
+    @staticmethod
+    def forward(ctx, fn, *tensors):  # type: ignore[override]
+        ctx.fn = fn
+        ctx.save_for_backward(*tensors)
+        with torch.no_grad():
+            return fn(*tensors)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        needs = ctx.needs_input_grad[1:]
+        inputs = [
+            t.detach().requires_grad_(n) for t, n in zip(ctx.saved_tensors, needs, strict=True)
+        ]
+        with torch.enable_grad():
+            out = ctx.fn(*inputs)
+        wanted = [t for t, n in zip(inputs, needs, strict=True) if n]
+        grads = iter(torch.autograd.grad(out, wanted, grad_out, allow_unused=True))
+        return (None, *(next(grads) if n else None for n in needs))
 
 
 def _slices(n: int, size: int) -> list[slice]:

@@ -171,9 +171,9 @@ def test_response_gradients_against_finite_differences(spectra, field64):
     kp["theta"] = np.array([0.3, 1.2, 2.0, 2.9, 0.7, 1.9])  # off grid lines (kinks)
     kp["eta"] = np.array([2.0, 3.5, 6.0, 8.0, 4.0, 5.0])
     model = make_model(field64, kp)
-    face_ids, bary = random_points(spectra, 5, seed=10)
+    face_ids, bary = random_points(spectra, 3, seed=10)
     face_ids, bary = torch.as_tensor(face_ids), torch.as_tensor(bary)
-    cand = torch.arange(6).expand(5, -1)
+    cand = torch.arange(6).expand(3, -1)
     names = ["theta", "s", "threshold", "sharpness", "bary"]
     start = [getattr(model, n).detach().clone() for n in names]
 
@@ -187,7 +187,7 @@ def test_response_gradients_against_finite_differences(spectra, field64):
         # swap Parameters for plain tensors so gradcheck's inputs are the leaves
         for n in names:
             delattr(model, n)
-        assert torch.autograd.gradcheck(rho_of, inputs, atol=1e-6)
+        assert torch.autograd.gradcheck(rho_of, inputs, atol=1e-6, fast_mode=True)
     finally:
         for n, v in zip(names, start, strict=True):
             setattr(model, n, torch.nn.Parameter(v))
@@ -321,8 +321,8 @@ def test_kernelset_round_trip(spectra, field64):
 def test_large_grad_batches_are_checkpointed_with_equal_gradients(spectra, field64, monkeypatch):
     from hktex_engine import kernels
 
-    kp = make_params(spectra, 12, seed=21)
-    face_ids, bary = random_points(spectra, 40, seed=22)
+    kp = make_params(spectra, 8, seed=21)
+    face_ids, bary = random_points(spectra, 16, seed=22)
     grads = []
     for chunk in (10**6, 7):
         monkeypatch.setattr(kernels, "GRAD_CHUNK_POINTS", chunk)
@@ -337,8 +337,8 @@ def test_large_grad_batches_are_checkpointed_with_equal_gradients(spectra, field
 def test_gradient_reaches_query_barycentrics(spectra, field64):
     kp = make_params(spectra, 8, seed=23)
     model = make_model(field64, kp)
-    face_ids, bary = random_points(spectra, 5, seed=24)
+    face_ids, bary = random_points(spectra, 3, seed=24)
     face_ids = torch.as_tensor(face_ids)
-    cand = torch.arange(8).expand(5, -1)
+    cand = torch.arange(8).expand(3, -1)
     b = torch.as_tensor(bary).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda q: model.responses(face_ids, q, cand)[0], (b,))
