@@ -48,8 +48,11 @@ def residuals(L: sp.spmatrix, mass: np.ndarray, evals: np.ndarray, vecs: np.ndar
     return np.sqrt(np.einsum("ij,ij->j", R, R / mass[:, None])) / np.maximum(np.abs(evals), 1.0)
 
 
-def eigs_cold(L: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lowest ``k`` eigenpairs, ascending, M-orthonormal, by ARPACK shift-invert."""
+def eigs_cold(
+    L: sp.spmatrix, mass: np.ndarray, k: int, sigma: float = COLD_SIGMA
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``k`` eigenpairs nearest ``sigma``, ascending, M-orthonormal, by ARPACK
+    shift-invert. With the default shift (below 0) these are the lowest ``k``."""
     n = L.shape[0]
     if k >= n - 1:
         raise SpectraError(f"cannot compute {k} eigenpairs of a mesh with {n} vertices")
@@ -57,11 +60,47 @@ def eigs_cold(L: sp.spmatrix, mass: np.ndarray, k: int) -> tuple[np.ndarray, np.
     # A fixed start vector makes the result reproducible (ARPACK's default is random).
     v0 = np.random.default_rng(0).standard_normal(n)
     try:
-        evals, vecs = eigsh(L.tocsc(), k=k, M=M, sigma=COLD_SIGMA, which="LM", v0=v0)
+        evals, vecs = eigsh(L.tocsc(), k=k, M=M, sigma=sigma, which="LM", v0=v0)
     except Exception as exc:  # ARPACK reports non-convergence as several exception types
         raise SpectraError(f"eigensolver failed: {exc}") from exc
     order = np.argsort(evals)
     return evals[order], canonical_signs(_m_normalise(vecs[:, order], mass))
+
+
+#: Where the shift goes, as a fraction of an estimate of lambda_k (see eigs_lowest).
+MID_SHIFT_FRACTION = 0.45
+
+
+def estimate_lambda_k(iso_lambda_k: float, eta: float) -> float:
+    """Weyl-law estimate of an ALBO's k-th eigenvalue from the isotropic one.
+
+    Eigenvalue counts grow like ``area * lambda / (4 pi sqrt(det D))`` and ``det D = 1 /
+    (1 + eta)``, so ``lambda_k ~ lambda_k_iso / sqrt(1 + eta)``. Measured on the shared
+    meshes the true value is at or above this (e.g. 94 vs 37 at eta = 200 on
+    marble_bust_01), which errs on the safe side for :func:`eigs_lowest`.
+    """
+    return float(iso_lambda_k) / np.sqrt(1.0 + float(eta))
+
+
+def eigs_lowest(
+    L: sp.spmatrix, mass: np.ndarray, k: int, lambda_k_estimate: float | None = None
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Lowest ``k`` eigenpairs, faster than :func:`eigs_cold` with a shift inside the range.
+
+    Shift-invert Lanczos converges fastest for eigenvalues near the shift; with it at ~0.45
+    of lambda_k instead of below 0 the whole wanted range is nearer to it, and ARPACK needed
+    ~1.3-1.6x less time (marble_bust_01, K = 256). The k eigenvalues nearest a shift
+    ``sigma > 0`` are the lowest k exactly when they include lambda_0 = 0 (the constants; the
+    set nearest ``sigma`` is an interval around it), so that is checked, and a miss (an
+    estimate far too high) falls back to the shift below 0. Returns (evals, evecs, method).
+    """
+    if lambda_k_estimate is not None and lambda_k_estimate > 0:
+        sigma = MID_SHIFT_FRACTION * lambda_k_estimate
+        vals, vecs = eigs_cold(L, mass, k, sigma=sigma)
+        if abs(vals[0]) <= 1e-8 * max(abs(vals[-1]), 1.0):
+            return vals, vecs, "cold"
+    vals, vecs = eigs_cold(L, mass, k)
+    return vals, vecs, "cold (shift below 0)"
 
 
 def canonical_signs(vecs: np.ndarray) -> np.ndarray:

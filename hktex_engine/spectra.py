@@ -26,7 +26,12 @@ import scipy.sparse as sp
 
 from hktex_engine.alignment import align_basis
 from hktex_engine.config import SpectralConfig
-from hktex_engine.eigensolver import SolveInfo, eigs_cold, eigs_warm
+from hktex_engine.eigensolver import (
+    SolveInfo,
+    eigs_lowest,
+    eigs_warm,
+    estimate_lambda_k,
+)
 from hktex_engine.errors import SpectraError
 from hktex_engine.mesh import Mesh
 from hktex_engine.operators import (
@@ -180,15 +185,15 @@ def _operator_key(theta: float, eta: float) -> tuple[float, float]:
     return (round(float(np.mod(theta, np.pi)), 12), float(eta))
 
 
-def _solve_timed(L: sp.csr_matrix, mass: np.ndarray, k: int) -> tuple:
+def _solve_timed(L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float) -> tuple:
     """One cold solve, timed (runs in a worker process when ``workers > 1``)."""
     t0 = time.perf_counter()
-    vals, vecs = eigs_cold(L, mass, k)
-    return vals, vecs, time.perf_counter() - t0
+    vals, vecs, method = eigs_lowest(L, mass, k, estimate)
+    return vals, vecs, time.perf_counter() - t0, method
 
 
 def _cold_solutions(
-    operators: Iterator[sp.csr_matrix], mass: np.ndarray, k: int, workers: int
+    operators: Iterator[tuple[sp.csr_matrix, float]], mass: np.ndarray, k: int, workers: int
 ) -> Iterator[tuple]:
     """Cold solves of ``operators`` in order; with ``workers > 1`` in a process pool.
 
@@ -197,15 +202,15 @@ def _cold_solutions(
     pool state is inherited.
     """
     if workers <= 1:
-        for L in operators:
-            yield _solve_timed(L, mass, k)
+        for L, estimate in operators:
+            yield _solve_timed(L, mass, k, estimate)
         return
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         pending: deque = deque()
         try:
-            for L in operators:
-                pending.append(pool.submit(_solve_timed, L, mass, k))
+            for L, estimate in operators:
+                pending.append(pool.submit(_solve_timed, L, mass, k, estimate))
                 if len(pending) > workers:
                     yield pending.popleft().result()
             while pending:
@@ -295,7 +300,9 @@ def compute_spectra(
 
         t0 = time.perf_counter()
         p = _work_size(config, n) if solver == "warm" else K
-        iso_vals, iso_vecs = eigs_cold(cotangent_stiffness(V, F), mass, max(p, need))
+        k_first = max(p, need)
+        weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
+        iso_vals, iso_vecs, _ = eigs_lowest(cotangent_stiffness(V, F), mass, k_first, weyl)
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
         check_cancel(progress)
@@ -303,7 +310,11 @@ def compute_spectra(
         plan = _node_plan(thetas, etas)
         if solver == "cold":
             cold_iter = _cold_solutions(
-                (assembler.stiffness(th, et) for _, th, et, src, _ in plan if src == "solve"),
+                (
+                    (assembler.stiffness(th, et), estimate_lambda_k(iso_vals[K - 1], et))
+                    for _, th, et, src, _ in plan
+                    if src == "solve"
+                ),
                 mass,
                 K,
                 workers,
@@ -326,8 +337,8 @@ def compute_spectra(
                 vals, vecs = evals[holder], sink.get(holder)
                 info = SolveInfo(f"copy of node {holder}", 0, 0.0)
             elif cold_iter is not None:
-                vals, vecs, seconds = next(cold_iter)
-                info = SolveInfo("cold", 0, 0.0, seconds)
+                vals, vecs, seconds, method = next(cold_iter)
+                info = SolveInfo(method, 0, 0.0, seconds)
             else:
                 L = assembler.stiffness(theta, eta)
                 vals, vecs, info = eigs_warm(L, mass, start, K)

@@ -23,7 +23,7 @@ from hktex_engine.spectra import (
     write_spectra,
 )
 
-TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
+TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9, rotation="block")
 
 
 def _ellipsoid_mesh(level: int = 3, seed: int = 2) -> Mesh:
@@ -81,6 +81,21 @@ def test_every_stored_node_is_an_m_orthonormal_eigenbasis(mesh, tiny):
     assert residuals(L, M, tiny.iso_evals, iso).max() < 1e-8
 
 
+def test_full_rotation_nodes_span_the_exact_eigenspaces(mesh):
+    """Full Procrustes (the default) keeps each node M-orthonormal and inside the span of
+    its K lowest eigenvectors, with the eigenvalues only permuted."""
+    sp = compute_spectra(mesh, SpectralConfig(**{**TINY.to_dict(), "rotation": "full"}))
+    assert SpectralConfig().rotation == "full"
+    M = sp.mass
+    for g in range(sp.evals.shape[0]):
+        phi = np.asarray(sp.evecs[:, g, :], dtype=np.float64)
+        np.testing.assert_allclose(phi.T @ (M[:, None] * phi), np.eye(16), atol=1e-5)
+        vals, exact = eigs_cold(_operator(mesh, sp, g), M, 16)
+        np.testing.assert_allclose(np.sort(sp.evals[g]), vals, rtol=1e-6, atol=1e-9)
+        inside = exact @ (exact.T @ (M[:, None] * phi))  # M-projection on the exact span
+        assert np.abs(inside - phi).max() < 1e-4
+
+
 def test_node_spectra_equal_an_independent_dense_solve(mesh, tiny):
     import scipy.linalg as sla
 
@@ -118,6 +133,26 @@ def test_warm_solver_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs)
     # theta = pi is theta = 0: copied, not solved again
     methods = [e["method"] for e in tiny.manifest["solver"]["nodes"]]
     assert methods[4:] == ["copy of node 0", "copy of node 1"]
+
+
+def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
+    from hktex_engine.eigensolver import eigs_lowest, estimate_lambda_k
+
+    V, F = mesh.vertices, mesh.faces
+    from hktex_engine.operators import reference_tangent_field
+
+    M = lumped_mass(V, F)
+    iso, _ = eigs_cold(cotangent_stiffness(V, F), M, 20)
+    L = AlboAssembler(V, F, reference_tangent_field(V, F)).stiffness(0.3, 30.0)
+    exact, _ = eigs_cold(L, M, 20)
+    vals, vecs, method = eigs_lowest(L, M, 20, estimate_lambda_k(iso[-1], 30.0))
+    assert method == "cold"
+    np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
+    assert residuals(L, M, vals, vecs).max() < 1e-8
+    # an estimate far too high puts the shift among higher eigenvalues: detected, redone
+    vals, _, method = eigs_lowest(L, M, 20, 50 * exact[-1])
+    assert method == "cold (shift below 0)"
+    np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
 
 
 def test_too_few_vertices_is_a_spectra_error(mesh):
