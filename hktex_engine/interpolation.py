@@ -14,6 +14,7 @@ chunk in forward and again in backward, so memory stays bounded by the chunk siz
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Iterator
 
 import numpy as np
@@ -117,11 +118,30 @@ def _gather_rows(
     return rows.view(verts.shape[0], 3 * nodes.shape[1], k).to(dtype)
 
 
+def _device_evecs(evecs: np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """The eigenvector grid as a tensor, shared with the spectra's array where possible.
+
+    On the CPU a float16/float32 grid (typically a read-only memory map of ``evecs.npy``) is
+    wrapped without a copy: worker processes serving the same spectra then share the page
+    cache instead of each holding its own gigabytes. Rows are up-cast to the compute dtype
+    when gathered. The tensor is never written to.
+    """
+    if evecs.dtype in (np.float16, np.float32) and device.type == "cpu":
+        if not evecs.flags.c_contiguous:
+            evecs = np.ascontiguousarray(evecs)
+        with warnings.catch_warnings():  # read-only memory map: we only ever read it
+            warnings.filterwarnings("ignore", message="The given NumPy array is not writable")
+            return torch.from_numpy(evecs)
+    store = torch.float16 if evecs.dtype == np.float16 else dtype
+    return torch.from_numpy(np.array(evecs, order="C")).to(device, store)
+
+
 class SpectralField:
     """The aligned spectral grid of one mesh as device tensors, with differentiable lookups.
 
     ``dtype`` is the compute precision. Eigenvectors stored as float16 in the spectra stay
-    float16 on the device (half the memory) and are up-cast row by row when gathered.
+    float16 on the device (half the memory) and are up-cast row by row when gathered; on the
+    CPU the grid is shared with the spectra's (memory-mapped) array, not copied.
     """
 
     def __init__(
@@ -133,10 +153,7 @@ class SpectralField:
         self.device = resolve_device(device)
         self.dtype = dtype
         self.spectra = spectra
-        evecs = np.asarray(spectra.evecs)
-        store = torch.float16 if evecs.dtype == np.float16 else dtype
-        # a copy: the spectra's arrays may be read-only memory maps
-        self.evecs = torch.from_numpy(np.array(evecs, order="C")).to(self.device, store)
+        self.evecs = _device_evecs(spectra.evecs, self.device, dtype)
         self.evals = self._t(spectra.evals)  # (G, K)
         self.grid_theta = self._t(spectra.grid_theta)
         self.grid_s = self._t(spectra.grid_s)

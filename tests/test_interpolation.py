@@ -124,3 +124,16 @@ def test_float16_storage_upcasts(spectra):
         torch.as_tensor(face_ids), torch.as_tensor(bary), th.double(), ss.double()
     )
     np.testing.assert_allclose(out.numpy(), ref.numpy(), atol=5e-3 * np.abs(ref.numpy()).max())
+
+
+def test_cpu_field_shares_a_memory_mapped_grid(spectra, tmp_path):
+    from hktex_engine.spectra import load_spectra, write_spectra
+
+    mapped = load_spectra(write_spectra(spectra, tmp_path / "s"), mmap=True)
+    field = SpectralField(mapped, device="cpu", dtype=torch.float64)
+    assert field.evecs.data_ptr() == mapped.evecs.ctypes.data  # no copy of the big array
+    face_ids, bary = random_points(spectra, 6)
+    th, ss = torch.full((6,), 0.4, dtype=torch.float64), torch.full((6,), 1.1, dtype=torch.float64)
+    args = (torch.as_tensor(face_ids), torch.as_tensor(bary), th, ss)
+    ref = SpectralField(spectra, device="cpu", dtype=torch.float64).eigenfunctions(*args)
+    np.testing.assert_array_equal(field.eigenfunctions(*args).numpy(), ref.numpy())
