@@ -223,6 +223,7 @@ def machine() -> dict:
         "python": platform.python_version(),
         "cpus": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
+        "load_average_1m_at_start": round(os.getloadavg()[0], 2),
         "note": "loopback; load generator and server share the machine's cores",
     }
 
@@ -236,7 +237,8 @@ def write_results(out: Path, result: dict) -> None:
         "",
         f"Command: `{result['command']}`  ",
         f"Machine: {result['machine']['platform']}, {result['machine']['cpus']} CPUs, "
-        f"Python {result['machine']['python']}  ",
+        f"Python {result['machine']['python']}, load average at start "
+        f"{result['machine']['load_average_1m_at_start']} (other work on the machine)  ",
         f"Date: {result['date']}",
         "",
         f"Kernel set: {result['kernelset']['kernels']} kernels on "
@@ -250,6 +252,10 @@ def write_results(out: Path, result: dict) -> None:
         f"| requests / errors | {q['requests']} / {q['errors']} |",
         f"| throughput | {q['requests_per_s']} req/s, {q['points_per_s']:,} points/s |",
         f"| latency p50 / p99 / max | {q['p50_ms']} / {q['p99_ms']} / {q['max_ms']} ms |",
+        "",
+        "Every request carries all its points through the engine's query (one thread per "
+        "process); with 32 requests in flight each waits for the others, so latency is about "
+        "clients x points / throughput.",
         "",
         "| /v1/health during two fit jobs | value |",
         "|---|---|",
