@@ -158,3 +158,28 @@ def test_cli_fit_writes_hkt_and_json(tmp_path, capsys, sphere):
     assert ks.fitting["metrics"]["steps"] == 3
     assert main(["fit", str(obj), "-o", str(out), "--steps", "-1"]) == 2
     assert "error" in capsys.readouterr().err
+
+
+def test_tangent_gradient_agrees_with_the_kernel_models_own(sphere):
+    """Two independent derivations (Gram system here, barycentric gradients in kernels.py)."""
+    import torch
+
+    from hktex_engine.interpolation import SpectralField
+    from hktex_engine.kernels import HeatKernelModel
+    from hktex_engine.optimise import tangent_gradient
+
+    mesh, spectra = sphere
+    rng = np.random.default_rng(3)
+    ks = initial_kernelset(mesh, spectra, FitParams(kernels=120), rng)
+    model = HeatKernelModel.from_kernelset(ks, SpectralField(spectra, device="cpu"))
+    f, b = sample_surface(mesh.vertices, mesh.faces, 200, rng)
+    target = torch.rand(200, 3, generator=torch.Generator().manual_seed(0))
+    pred = model.albedo(torch.as_tensor(f), torch.as_tensor(b, dtype=torch.float32))
+    ((pred - target) ** 2).sum().backward()
+    v = torch.as_tensor(np.array(spectra.vertices))
+    ours = tangent_gradient(
+        v, torch.as_tensor(np.array(spectra.faces)), model.face_ids, model.bary.grad
+    )
+    theirs = model.centre_tangent_grad().to(ours.dtype)
+    assert float(theirs.abs().max()) > 0
+    assert torch.allclose(ours, theirs, rtol=1e-4, atol=1e-6 * float(theirs.abs().max()))
