@@ -269,11 +269,15 @@ def _baselines(mesh: Any, face_ids: np.ndarray, bary: np.ndarray, target: np.nda
 
 def run_demo(args: argparse.Namespace) -> dict:
     """Run the demo end to end and write the report; returns the CLI summary."""
-    from hktex_client import Client
+    from hktex_client import Client, HKTexAPIError
+
+    from hktex_engine.errors import HKTexError
 
     threads = _limit_threads(getattr(args, "threads", None))
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
+    for stale in ("render_kernels.png", "render_uv_texture.png"):  # never show an old run's
+        (out / stale).unlink(missing_ok=True)
     data_dir = Path(args.data_dir).resolve() if args.data_dir else out / "data"
     anisotropies = [float(a) for a in str(args.anisotropies).split(",") if a.strip()]
     spectral = {
@@ -317,20 +321,32 @@ def run_demo(args: argparse.Namespace) -> dict:
         with timer.stage("query"):
             quality = _evaluate(client, ks_id, obj, texture, args.eval_points, args.seed + 1)
         _say(args, f"surface PSNR {quality['surface_psnr_db']} dB")
+        notes: list[str] = []
         with timer.stage("render"):
-            png = client.render(
-                ks_id, width=args.render_size, height=args.render_size, view=args.view
-            )
-        _png_size(png)
-        (out / "render_kernels.png").write_bytes(png)
+            try:
+                png = client.render(
+                    ks_id, width=args.render_size, height=args.render_size, view=args.view
+                )
+                _png_size(png)
+                (out / "render_kernels.png").write_bytes(png)
+            except (HKTexAPIError, ValueError) as exc:
+                # A preview is not worth losing the fit and the numbers over (e.g. Mitsuba's
+                # LLVM backend missing): say why in the report instead.
+                notes.append(f"no kernel-set render: {exc}")
+                _say(args, notes[-1])
     with timer.stage("render UV reference"):
-        reference = _uv_reference_png(obj, texture, args)
+        try:
+            reference = _uv_reference_png(obj, texture, args)
+        except HKTexError as exc:
+            reference = None
+            notes.append(f"no UV-texture render: {exc}")
     if reference is not None:
         (out / "render_uv_texture.png").write_bytes(reference)
     summary = _summary(
         args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info, threads
     )
-    report = _write_report(out, summary, reference is not None)
+    summary["notes"] = notes
+    report = _write_report(out, summary)
     summary["report"] = str(report)
     summary["message"] = f"hktex demo: report written to {report}"
     return summary
@@ -362,7 +378,7 @@ def _summary(
     }
 
 
-def _write_report(out: Path, s: dict, has_reference: bool) -> Path:
+def _write_report(out: Path, s: dict) -> Path:
     """report.md and report.html side by side; summary.json for machines."""
     (out / "summary.json").write_text(json.dumps(s, indent=2, default=str))
     ks, q = s["kernelset"], s["quality"]
@@ -381,9 +397,15 @@ def _write_report(out: Path, s: dict, has_reference: bool) -> Path:
     # The comparison EVALUATION.md asks for: bytes against surface PSNR, same samples.
     compare = [("HKTex kernel set (zip)", ks["zip_bytes"], q["surface_psnr_db"])]
     compare += [(b["method"], b["bytes"], b["psnr_db"]) for b in q["baselines"]]
-    images = [("render_kernels.png", "heat-kernel texture (service render)")]
-    if has_reference:
-        images.append(("render_uv_texture.png", "original UV texture (same view)"))
+    images = [
+        (name, caption)
+        for name, caption in (
+            ("render_kernels.png", "heat-kernel texture (service render)"),
+            ("render_uv_texture.png", "original UV texture (same view)"),
+        )
+        if (out / name).is_file()
+    ]
+    rows += [("note", n) for n in s.get("notes", [])]
     md = [
         "# HKTex demo",
         "",

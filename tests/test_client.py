@@ -226,6 +226,49 @@ def test_kernelset_record_and_render(alice: Client, fitted: dict) -> None:
     assert int.from_bytes(png[16:20], "big") == 48 and int.from_bytes(png[20:24], "big") == 40
 
 
+def test_async_client_answers_like_the_sync_client(alice: Client, fitted: dict) -> None:
+    ks_id = fitted["job"].result.kernelset_id
+    rng = np.random.default_rng(11)
+    faces = rng.integers(0, fitted["mesh"].n_faces, 64)
+    bary = rng.dirichlet(np.ones(3), 64)
+    expected = alice.albedo(ks_id, face_ids=faces, barycentrics=bary)
+
+    async def main() -> tuple:
+        async with AsyncClient(alice.base_url, token=ALICE) as ac:
+            colors, job, records = await asyncio.gather(
+                ac.albedo(ks_id, face_ids=faces, barycentrics=bary),
+                ac.wait(fitted["job"].id, timeout=10),
+                _collect(ac.watch(fitted["job"].id)),
+            )
+            with pytest.raises(NotFound):
+                await ac.get_kernelset("kst_missing")
+            return colors, job, records
+
+    colors, job, records = asyncio.run(main())
+    np.testing.assert_array_equal(colors, expected)
+    assert job.state == "succeeded" and records[-1].state == "succeeded"
+
+
+async def _collect(aiter) -> list:
+    return [item async for item in aiter]
+
+
+def test_concurrent_renders_all_succeed(alice: Client, fitted: dict) -> None:
+    # Concurrent requests run on different threads of the API's threadpool; each must render
+    # (Dr.Jit's JIT flags are per thread, so per-process set-up is not enough).
+    ks_id = fitted["job"].result.kernelset_id
+
+    async def main() -> list[bytes]:
+        async with AsyncClient(alice.base_url, token=ALICE, timeout=300) as ac:
+            return await asyncio.gather(
+                *(ac.render(ks_id, width=16 + 8 * i, height=16) for i in range(3))
+            )
+
+    for i, png in enumerate(asyncio.run(main())):
+        assert png[:8] == b"\x89PNG\r\n\x1a\n"
+        assert int.from_bytes(png[16:20], "big") == 16 + 8 * i
+
+
 # ---- progress: wait, events, cancel -----------------------------------------------------------
 
 
