@@ -218,6 +218,13 @@ def test_bad_query_is_a_422_with_reason(alice: Client, fitted: dict) -> None:
         alice.albedo(ks_id, points=[[np.nan, 0.0, 0.0]])
 
 
+def test_job_listing_filters_by_state(alice: Client, fitted: dict) -> None:
+    done = alice.list_jobs(state="succeeded")
+    assert fitted["job"].id in {j.id for j in done}
+    assert all(j.state == "succeeded" for j in done)
+    assert len(alice.list_jobs(limit=1)) == 1
+
+
 def test_kernelset_record_and_render(alice: Client, fitted: dict) -> None:
     ks = alice.get_kernelset(fitted["job"].result.kernelset_id)
     assert ks.n_kernels > 0 and ks.bytes > 0 and ks.job_id == fitted["job"].id

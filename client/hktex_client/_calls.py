@@ -179,9 +179,9 @@ def get_job(job_id: str) -> Call[JobRecord]:
     return Call("GET", f"{API}/jobs/{job_id}", _model(JobRecord))
 
 
-def list_jobs(state: str | None = None) -> Call[list[JobRecord]]:
-    params = {"state": state} if state else None
-    return Call("GET", f"{API}/jobs", _model_list(JobRecord), params=params)
+def list_jobs(state: str | None = None, limit: int | None = None) -> Call[list[JobRecord]]:
+    params = _drop_none({"state": state, "limit": limit})
+    return Call("GET", f"{API}/jobs", _model_list(JobRecord), params=params or None)
 
 
 def cancel_job(job_id: str) -> Call[JobRecord]:

@@ -232,8 +232,9 @@ class Client:
     def get_job(self, job_id: str) -> JobRecord:
         return self._run(calls.get_job(job_id))
 
-    def list_jobs(self, state: str | None = None) -> list[JobRecord]:
-        return self._run(calls.list_jobs(state))
+    def list_jobs(self, state: str | None = None, limit: int | None = None) -> list[JobRecord]:
+        """Own jobs, newest first; ``state`` filters (e.g. "running")."""
+        return self._run(calls.list_jobs(state, limit))
 
     def cancel_job(self, job_id: str) -> JobRecord:
         return self._run(calls.cancel_job(job_id))
@@ -459,8 +460,10 @@ class AsyncClient:
     async def get_job(self, job_id: str) -> JobRecord:
         return await self._run(calls.get_job(job_id))
 
-    async def list_jobs(self, state: str | None = None) -> list[JobRecord]:
-        return await self._run(calls.list_jobs(state))
+    async def list_jobs(
+        self, state: str | None = None, limit: int | None = None
+    ) -> list[JobRecord]:
+        return await self._run(calls.list_jobs(state, limit))
 
     async def cancel_job(self, job_id: str) -> JobRecord:
         return await self._run(calls.cancel_job(job_id))
