@@ -157,6 +157,8 @@ def backprojected_colors(
     """
     from scipy.spatial import cKDTree
 
+    if (scene.settings.width, scene.settings.height) != (views.width, views.height):
+        raise ValueError("the scene's film size must equal the views' image size")
     pts, cols = [], []
     for i, cam in enumerate(views.cameras):
         face, bary, hit = scene.hit_buffer(cam, sensor=scene.sensor(cam))
