@@ -271,3 +271,32 @@ def test_client_records_parse_a_server_record() -> None:
     )
     job = ClientJob.model_validate_json(record.model_dump_json())
     assert job.progress.fraction == 0.3 and job.kernelset_id == "kst_1" and not job.done
+
+
+def test_wait_keeps_polling_through_a_restarting_service() -> None:
+    answers = iter(
+        [
+            httpx.ConnectError("connection refused"),
+            httpx.Response(503, json={"detail": "starting"}),
+            httpx.Response(200, json=_job("running", 1)),
+            httpx.Response(200, json=_job("succeeded", 4)),
+        ]
+    )
+
+    def handler(request: httpx.Request) -> httpx.Response:
+        answer = next(answers)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    with Client("http://hktex.test", transport=httpx.MockTransport(handler)) as client:
+        assert client.wait("j1", timeout=5, poll=0.001).state == "succeeded"
+
+
+def test_wait_gives_up_on_a_dead_service_at_the_deadline() -> None:
+    def handler(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("connection refused")
+
+    with Client("http://hktex.test", transport=httpx.MockTransport(handler)) as client:
+        with pytest.raises(httpx.ConnectError):
+            client.wait("j1", timeout=0.05, poll=0.01)

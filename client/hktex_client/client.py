@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 
 from hktex_client import _calls as calls
-from hktex_client.errors import JobFailed, WaitTimeout
+from hktex_client.errors import JobFailed, ServerError, WaitTimeout
 from hktex_client.models import (
     FINAL_STATES,
     Health,
@@ -92,10 +92,16 @@ class Client:
         token: str | None = None,
         timeout: float | httpx.Timeout = DEFAULT_TIMEOUT,
         transport: httpx.BaseTransport | None = None,
+        retries: int = 2,
     ) -> None:
         self.base_url = base_url.rstrip("/")
+        # ``retries`` re-tries only failed connection attempts (nothing was sent), so it is
+        # safe for every method, including uploads and job submissions.
         self._http = httpx.Client(
-            base_url=self.base_url, headers=_headers(token), timeout=timeout, transport=transport
+            base_url=self.base_url,
+            headers=_headers(token),
+            timeout=timeout,
+            transport=transport or httpx.HTTPTransport(retries=retries),
         )
 
     def close(self) -> None:
@@ -249,7 +255,15 @@ class Client:
         """Poll until the job is final; raise :class:`JobFailed` unless it succeeded."""
         deadline = time.monotonic() + timeout
         while True:
-            job = self.get_job(job_id)
+            try:
+                job = self.get_job(job_id)
+            except (httpx.TransportError, ServerError):
+                # A restarting service or a dropped connection is not the job's failure:
+                # the queue keeps the job, so keep polling until the deadline.
+                if time.monotonic() >= deadline:
+                    raise
+                time.sleep(poll)
+                continue
             if job.done:
                 if raise_on_failure and job.state != "succeeded":
                     raise JobFailed(job)
@@ -333,14 +347,15 @@ class AsyncClient:
         timeout: float | httpx.Timeout = DEFAULT_TIMEOUT,
         transport: httpx.AsyncBaseTransport | None = None,
         limits: httpx.Limits | None = None,
+        retries: int = 2,
     ) -> None:
         self.base_url = base_url.rstrip("/")
+        limits = limits or httpx.Limits(max_connections=100, max_keepalive_connections=20)
         self._http = httpx.AsyncClient(
             base_url=self.base_url,
             headers=_headers(token),
             timeout=timeout,
-            transport=transport,
-            limits=limits or httpx.Limits(max_connections=100, max_keepalive_connections=20),
+            transport=transport or httpx.AsyncHTTPTransport(retries=retries, limits=limits),
         )
 
     async def aclose(self) -> None:
@@ -477,7 +492,13 @@ class AsyncClient:
     ) -> JobRecord:
         deadline = time.monotonic() + timeout
         while True:
-            job = await self.get_job(job_id)
+            try:
+                job = await self.get_job(job_id)
+            except (httpx.TransportError, ServerError):
+                if time.monotonic() >= deadline:
+                    raise
+                await asyncio.sleep(poll)
+                continue
             if job.done:
                 if raise_on_failure and job.state != "succeeded":
                     raise JobFailed(job)
