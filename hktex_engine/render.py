@@ -761,25 +761,24 @@ def _cameras(views: Any, vertices: np.ndarray) -> tuple[bool, list[Camera]]:
 
 
 def query_albedo_fn(query: Any) -> AlbedoFn:
-    """Wrap an inference ``AlbedoQuery`` (numpy in/out) as a torch albedo function."""
+    """Wrap an inference ``AlbedoQuery`` (numpy in/out) as a torch albedo function.
+
+    Mitsuba's barycentrics can stray a hair outside the triangle (float32); they are clipped
+    and renormalised because the query validates its input strictly.
+    """
+    n_faces = int(len(query.spectra.faces))
 
     def fn(face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         f = face_ids.detach().cpu().numpy()
-        b = bary.detach().cpu().numpy().astype(np.float64)
-        ok = (f >= 0) & (f < query_faces) if (query_faces := _n_faces(query)) else f >= 0
+        b = np.clip(bary.detach().cpu().numpy().astype(np.float64), 0.0, 1.0)
+        ok = (f >= 0) & (f < n_faces)
         out = np.zeros((len(f), 3), dtype=np.float32)
         if ok.any():
-            b_ok = np.clip(b[ok], 0.0, 1.0)
-            b_ok /= np.maximum(b_ok.sum(1, keepdims=True), 1e-12)
+            b_ok = b[ok] / np.maximum(b[ok].sum(1, keepdims=True), 1e-12)
             out[ok] = query.colors(f[ok], b_ok)
         return torch.from_numpy(out).to(face_ids.device)
 
     return fn
-
-
-def _n_faces(query: Any) -> int:
-    spectra = getattr(query, "spectra", None)
-    return int(len(spectra.faces)) if spectra is not None else 0
 
 
 def render_kernelset(
