@@ -374,7 +374,12 @@ def compute_spectra(
         iso_vals_k = iso_vals[: config.k_iso].copy()
         iso_vecs_k = np.ascontiguousarray(iso_vecs[:, : config.k_iso])
         manifest = _manifest(mesh, config, n, len(F), G, timings, solve_log)
-        manifest["solver"] = {"method": solver, "workers": workers, "nodes": solve_log}
+        manifest["solver"] = {
+            "method": solver,
+            "workers": workers,
+            "iso_lambda_k": float(iso_vals[K - 1]),
+            "nodes": solve_log,
+        }
         spectra = Spectra(
             vertices=V,
             faces=F,
