@@ -25,77 +25,17 @@ import json
 import os
 import platform
 import shlex
-import socket
-import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 from hktex_client import AsyncClient, Client
+from hktex_server.demo import spawned_service
 
 SPECTRAL = {"angles": 3, "anisotropies": [1.0, 15.0, 100.0], "k": 32, "k_iso": 17}
 FIT = {"kernels": 300, "max_kernels": 1200, "steps": 300, "seed": 0, "eval_points": 5000}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@contextlib.contextmanager
-def serve(data_dir: Path, workers: int, threads: int) -> Iterator[str]:
-    """``hktex serve`` in a child process (its own process group); yields the base URL."""
-    port = _free_port()
-    cmd = [
-        sys.executable,
-        "-m",
-        "hktex_engine",
-        "serve",
-        "--host",
-        "127.0.0.1",
-        "--port",
-        str(port),
-        "--data-dir",
-        str(data_dir),
-        "--workers",
-        str(workers),
-    ]
-    # Threads pinned per process (docs/client.md: spinning OpenMP threads on a loaded 2-core
-    # machine cost 10x); the API process and each job process get ``threads``.
-    threads_env = {
-        v: str(threads) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    }
-    env = {**os.environ, **threads_env, "HKTEX_TOKENS": ""}
-    log = (data_dir / "serve.log").open("wb")
-    proc = subprocess.Popen(
-        cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        with Client(url, timeout=5) as client:
-            while True:
-                if proc.poll() is not None:
-                    raise RuntimeError(f"hktex serve exited {proc.returncode}; see {log.name}")
-                with contextlib.suppress(Exception):
-                    client.health()
-                    break
-                if time.monotonic() > deadline:
-                    raise RuntimeError("hktex serve did not answer within 120 s")
-                time.sleep(0.2)
-        yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        log.close()
 
 
 def fit_kernelset(url: str, work: Path) -> tuple[str, int, dict]:
@@ -281,7 +221,13 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="hktex-bench-") as tmp:
         work = Path(tmp)
         (work / "data").mkdir()
-        with serve(work / "data", workers=2, threads=args.threads) as url:
+        threads = {
+            v: str(args.threads)
+            for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+        }
+        # Threads pinned per process (docs/client.md: spinning OpenMP threads on a loaded
+        # 2-core machine cost 10x); the API process and each job process inherit them.
+        with spawned_service(work / "data", 2, {**threads, "HKTEX_TOKENS": ""}) as url:
             t0 = time.monotonic()
             ks_id, n_faces, ks_info = fit_kernelset(url, work)
             ks_info["setup_s"] = round(time.monotonic() - t0, 1)

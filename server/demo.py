@@ -167,6 +167,81 @@ def running_service(settings: Settings, startup_timeout: float = 60.0) -> Iterat
         sock.close()
 
 
+@contextlib.contextmanager
+def spawned_service(
+    data_dir: Path,
+    workers: int = 1,
+    env: dict[str, str] | None = None,
+    startup_timeout: float = 120.0,
+) -> Iterator[str]:
+    """``hktex serve`` as a child process on a free loopback port; yield its URL.
+
+    For tests and benchmarks: the service's threads (rendering through Dr.Jit, queries through
+    torch) then cannot disturb the caller's interpreter, and a crash there is a failed request,
+    not a dead test run. Extra settings go through ``env`` (``HKTEX_*`` variables).
+    """
+    import os
+    import signal
+    import subprocess
+
+    from hktex_client import Client
+
+    with socket.socket() as s:  # the child binds it a moment later: a tiny race, loopback only
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    data_dir = Path(data_dir)
+    data_dir.mkdir(parents=True, exist_ok=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "hktex_engine",
+        "serve",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--data-dir",
+        str(data_dir),
+        "--workers",
+        str(workers),
+        "--log-level",
+        "warning",
+    ]
+    log = (data_dir / "serve.log").open("ab")
+    proc = subprocess.Popen(
+        cmd,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env={**os.environ, **(env or {})},
+        start_new_session=True,
+    )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + startup_timeout
+        with Client(url, timeout=5, retries=0) as client:
+            while True:
+                if proc.poll() is not None:
+                    raise RuntimeError(f"hktex serve exited {proc.returncode}; see {log.name}")
+                try:
+                    client.health()
+                    break
+                except Exception:
+                    if time.monotonic() > deadline:
+                        raise RuntimeError(
+                            f"hktex serve did not answer within {startup_timeout:g} s"
+                        ) from None
+                    time.sleep(0.2)
+        yield url
+    finally:
+        proc.send_signal(signal.SIGTERM)  # uvicorn shuts down; the supervisor stops its jobs
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        log.close()
+
+
 def _make_mesh(args: argparse.Namespace, out: Path) -> tuple[Path, Path]:
     """The demo's own textured mesh, written as OBJ + MTL + PNG into ``out``."""
     from hktex_engine.synthetic import textured_demo, write_textured_obj

@@ -24,9 +24,8 @@ from hktex_client import (
     Unauthorized,
     ValidationFailed,
 )
-from hktex_server.demo import running_service
+from hktex_server.demo import spawned_service
 from hktex_server.schemas import FitParamsIn
-from hktex_server.settings import Settings
 
 ALICE, BOB = "tok-alice", "tok-bob"
 SPECTRAL = {"angles": 2, "anisotropies": [1.0, 10.0], "k": 8, "k_iso": 6}
@@ -38,15 +37,15 @@ if "eval_points" in FitParamsIn.model_fields:  # the fit's own PSNR evaluation d
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory: pytest.TempPathFactory) -> str:
-    data = tmp_path_factory.mktemp("hktex-client-service")
-    settings = Settings(
-        data_dir=data,
-        workers=1,
-        tokens=f"{ALICE}:alice,{BOB}:bob",
-        max_upload_bytes=MAX_UPLOAD,
-        poll_seconds=0.1,
-    )
-    with running_service(settings) as url:
+    """``hktex serve`` in a child process: what the client talks to in production."""
+    env = {
+        "HKTEX_TOKENS": f"{ALICE}:alice,{BOB}:bob",
+        "HKTEX_MAX_UPLOAD_BYTES": str(MAX_UPLOAD),
+        "HKTEX_POLL_SECONDS": "0.1",
+        "OMP_NUM_THREADS": "1",  # tiny problems: one thread is fastest (docs/client.md)
+        "OPENBLAS_NUM_THREADS": "1",
+    }
+    with spawned_service(tmp_path_factory.mktemp("hktex-client-service"), 1, env) as url:
         yield url
 
 

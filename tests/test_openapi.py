@@ -13,9 +13,8 @@ import json
 
 import pytest
 import schemathesis
-from hktex_server.demo import running_service
+from hktex_server.demo import spawned_service
 from hktex_server.openapi_dump import REPO_FILE, openapi_document, render
-from hktex_server.settings import Settings
 from hypothesis import HealthCheck, settings
 from schemathesis import checks as st_checks
 
@@ -64,13 +63,8 @@ def test_every_interface_route_is_documented() -> None:
 @pytest.fixture(scope="module")
 def live_url(tmp_path_factory: pytest.TempPathFactory) -> str:
     # No supervisor (workers=0): generated jobs stay queued instead of spawning processes.
-    settings = Settings(
-        data_dir=tmp_path_factory.mktemp("hktex-schemathesis"),
-        workers=0,
-        tokens=f"{TOKEN}:fuzzer",
-        max_upload_bytes=1_000_000,
-    )
-    with running_service(settings) as url:
+    env = {"HKTEX_TOKENS": f"{TOKEN}:fuzzer", "HKTEX_MAX_UPLOAD_BYTES": "1000000"}
+    with spawned_service(tmp_path_factory.mktemp("hktex-schemathesis"), 0, env) as url:
         yield url
 
 
