@@ -39,6 +39,13 @@ THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
 SHARPNESS_RANGE = (10.0, 200.0)
 COLOR_RANGE = (-1.0, 1.0)
 BASE_RANGE = (0.0, 1.0)
+#: How ``h_j(y)`` is computed without gradients: "auto" picks per batch between the node
+#: matmul ("bmm") and shared (vertex, kernel) pairs ("vertex"); see ``_h_by_vertex_pairs``.
+PAIR_PATH = "auto"
+#: Relative cost of one gathered eigenvector row against one matmul row (measured, see docs).
+VERTEX_PATH_COST = 24
+#: (vertex, kernel) pairs per gathered block in the vertex path.
+PAIR_CHUNK = 16384
 #: Points per checkpointed chunk when a differentiable batch is larger than this.
 GRAD_CHUNK_POINTS = 1024
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
@@ -486,14 +493,52 @@ def _pair_ratio(
     sigma_b: float,
 ) -> torch.Tensor:
     """``r`` for points and their candidates ``local`` (rows of the per-kernel terms)."""
-    phi_y = field.node_values(face_ids, bary)  # (P, G, K)
-    # coef_j . Phi_y[g] for every node g, then the kernel's own 4 nodes (see module doc).
-    picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
-    dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
-    h = (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
+    h = None
+    if not torch.is_grad_enabled() and PAIR_PATH != "bmm":
+        h = _h_by_vertex_pairs(face_ids, bary, local, coef, nodes, weights, field)
+    if h is None:
+        h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field)
     emb_y = field.embedding_at(face_ids, bary)
     d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
     return h * torch.exp(-d2 / (2.0 * sigma_b**2)) / norm[local]
+
+
+def _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field) -> torch.Tensor:
+    """``h_j(y)`` (P, C): ``coef_j . Phi_y[g]`` for every node g, then j's own 4 nodes."""
+    phi_y = field.node_values(face_ids, bary)  # (P, G, K)
+    picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
+    dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
+    return (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
+
+
+def _h_by_vertex_pairs(face_ids, bary, local, coef, nodes, weights, field) -> torch.Tensor | None:
+    """``h_j(y) = sum_v b_v H_j(v)`` with ``H_j(v)`` computed once per (vertex, kernel) pair.
+
+    ``h`` is linear in the query's barycentrics, so dense queries (baking, rendering: many
+    points per face, sorted by face) share the vertex values and need 4 K multiply-adds per
+    unique pair instead of G K per (point, candidate). Returns None when the pairs are not
+    shared enough to pay off (sparse queries), leaving the matmul path to it.
+    """
+    n_k = coef.shape[0]
+    verts = field.faces[face_ids]  # (P, 3)
+    keys = verts[:, :, None] * n_k + local[:, None, :]  # (P, 3, C)
+    uniq, inverse = torch.unique(keys, return_inverse=True)
+    p, c = local.shape
+    if (
+        PAIR_PATH == "auto"
+        and VERTEX_PATH_COST * uniq.shape[0] * nodes.shape[1] > p * c * field.n_nodes
+    ):
+        return None
+    vert, kern = uniq // n_k, uniq % n_k
+    values = torch.empty(uniq.shape[0], dtype=coef.dtype, device=coef.device)
+    flat_evecs = field.evecs.reshape(-1, field.k)
+    for sl in _slices(uniq.shape[0], PAIR_CHUNK):
+        j = kern[sl]
+        rows = vert[sl, None] * field.n_nodes + nodes[j]  # (u, 4) rows of the (n*G, K) view
+        block = flat_evecs.index_select(0, rows.reshape(-1)).view(-1, nodes.shape[1], field.k)
+        at_nodes = torch.bmm(block.to(coef.dtype), coef[j, :, None]).squeeze(2)  # (u, 4)
+        values[sl] = (at_nodes * weights[j]).sum(dim=1)
+    return (values[inverse] * bary.to(coef.dtype)[:, :, None]).sum(dim=1)
 
 
 class _Recompute(torch.autograd.Function):

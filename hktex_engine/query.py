@@ -73,13 +73,17 @@ class AlbedoQuery:
     ) -> np.ndarray:
         """Albedo (P, 3) float32 at surface points given as face ids and barycentrics."""
         face_ids, bary = self.validate(face_ids, barycentrics)
+        # Chunks of points sorted by face share vertices, which dense queries exploit
+        # (kernels._h_by_vertex_pairs); the answer goes back in the caller's order.
+        order = np.argsort(face_ids, kind="stable")
+        face_ids, bary = face_ids[order], bary[order]
         out = np.empty((face_ids.shape[0], 3), dtype=np.float32)
         with torch.no_grad():
             for start in range(0, face_ids.shape[0], self.chunk_points):
                 sl = slice(start, start + self.chunk_points)
                 f = torch.as_tensor(face_ids[sl], device=self.device)
                 b = torch.as_tensor(bary[sl], device=self.device, dtype=self.field.dtype)
-                out[sl] = self.model.albedo(f, b).cpu().numpy()
+                out[order[sl]] = self.model.albedo(f, b).cpu().numpy()
                 check_cancel(progress)
                 if progress is not None:
                     progress.update(min(start + self.chunk_points, len(out)), len(out))

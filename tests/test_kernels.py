@@ -342,3 +342,36 @@ def test_gradient_reaches_query_barycentrics(spectra, field64):
     cand = torch.arange(8).expand(3, -1)
     b = torch.as_tensor(bary).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda q: model.responses(face_ids, q, cand)[0], (b,))
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_vertex_pair_path_equals_node_matmul(spectra, field64, monkeypatch, dense):
+    from hktex_engine import kernels
+
+    kp = make_params(spectra, 30, seed=25)
+    model = make_model(field64, kp)
+    rng = np.random.default_rng(26)
+    n_faces, n_points = (1, 200) if dense else (spectra.faces.shape[0], 60)
+    face_ids = rng.integers(0, n_faces, n_points)
+    bary = rng.dirichlet(np.ones(3), n_points)
+    results = {}
+    for path in ("bmm", "vertex", "auto"):
+        monkeypatch.setattr(kernels, "PAIR_PATH", path)
+        monkeypatch.setattr(kernels, "PAIR_CHUNK", 7)  # several gathered blocks
+        with torch.no_grad():
+            results[path] = model.albedo(face_ids, bary).numpy()
+    np.testing.assert_allclose(results["vertex"], results["bmm"], atol=1e-12)
+    np.testing.assert_allclose(results["auto"], results["bmm"], atol=1e-12)
+    with torch.no_grad():  # and the auto rule takes the vertex path for dense batches only
+        monkeypatch.setattr(kernels, "PAIR_PATH", "auto")
+        cand = model._knn.search(
+            field64.embedding_at(torch.as_tensor(face_ids), torch.as_tensor(bary)), 12
+        )
+        got = kernels._h_by_vertex_pairs(
+            torch.as_tensor(face_ids),
+            torch.as_tensor(bary),
+            cand,
+            *[model._terms[i] for i in (0, 2, 3)],
+            field64,
+        )
+    assert (got is not None) == dense
