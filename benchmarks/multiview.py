@@ -328,6 +328,11 @@ def main(argv: list[str] | None = None) -> int:
             "views_s": views_s,
             "time_resolution": args.time_resolution,
             "time_spp": args.time_spp,
+            "densify": not args.no_densify,
+            "diffusion_time": args.diffusion_time,
+            "sigma_b": args.sigma_b,
+            "init": "HKTex colours back-projected from the training views; vertex colours "
+            "start grey, the MLP from random weights (as the baselines are defined)",
         },
         "rows": rows,
         "render_ratio_hktex_vs_uv": hk / uv_ms if uv_ms > 0 else None,
@@ -361,7 +366,8 @@ def _markdown(r: dict) -> str:
         f"render time of one {s['time_resolution']}² view at {s['time_spp']} spp. HKTex: "
         f"diffusion time {s.get('diffusion_time')}, sigma_B {s.get('sigma_b')}, density "
         f"control {'on' if s.get('densify', True) else 'off'}. The UV texture row scores the "
-        f"reference texture itself under the same protocol (the Monte Carlo noise floor).",
+        f"reference texture itself under the same protocol (the Monte Carlo noise floor). "
+        f"Initialisation: {s.get('init', '')}.",
         "",
         "| Method | PSNR ↑ | SSIM ↑ | Render time (ms) ↓ | Storage (KB, zip) ↓ | Fit (s) |",
         "|---|---|---|---|---|---|",
