@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from hktex_engine.errors import RenderError, SpectraError
+from hktex_engine.errors import Cancelled, RenderError, SpectraError
 
 pytestmark = pytest.mark.mitsuba
 
@@ -133,3 +133,31 @@ def test_render_gradient_reaches_kernel_base_color(setup):
         with torch.no_grad():
             model.base_color[1] -= sign * h
     assert g == pytest.approx((vals[0] - vals[1]) / (2 * h), rel=0.1)
+
+
+@pytest.mark.slow
+def test_resume_from_checkpoint_reproduces_the_fit(setup, tmp_path):
+    from hktex_engine.config import FitParams
+    from hktex_engine.fit_multiview import MultiViewOptions, fit_multiview
+
+    mesh, spectra, train, _ = setup
+    opts = MultiViewOptions(crop=16, spp=1)
+    params = FitParams(kernels=30, steps=4, seed=3, densify=False, checkpoint_every=2)
+    whole = fit_multiview(mesh, spectra, train, params, options=opts)
+    ckpt = tmp_path / "ckpt"
+
+    class StopAfterTwo:  # cancels the fit before its third step; the loop checkpoints then
+        calls = 0
+
+        def update(self, step, total, **metrics):
+            return None
+
+        def should_stop(self):
+            self.calls += 1
+            return self.calls > 2
+
+    with pytest.raises(Cancelled):
+        fit_multiview(mesh, spectra, train, params, StopAfterTwo(), ckpt, options=opts)
+    resumed = fit_multiview(mesh, spectra, train, params, options=opts, checkpoint_dir=ckpt)
+    assert resumed.metrics["resumed_from"] == 2
+    assert np.allclose(resumed.kernelset.colors, whole.kernelset.colors, atol=1e-5)
