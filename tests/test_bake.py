@@ -77,7 +77,7 @@ def test_padding_fills_from_nearest():
     assert (out[1, 0] == 1.0).all() and (out[3, 4] == 0.5).all() and (out[4, 3] == 0.5).all()
 
 
-def _baked_vs_query(mesh_uvs, texture, spectra, ks, n=3000):
+def _baked_vs_query(mesh_uvs, texture, spectra, ks, n=2000):
     from hktex_engine.query import AlbedoQuery
     from hktex_engine.sampling import sample_surface, texture_lookup, uv_at
 
@@ -92,7 +92,7 @@ def test_baked_texture_matches_query_on_mesh_uvs(setup, tmp_path):
     from hktex_engine.mesh import load_mesh
 
     mesh, spectra, ks = setup
-    bake = bake_texture(spectra, ks, mesh, resolution=256)
+    bake = bake_texture(spectra, ks, mesh, resolution=160)
     assert bake.atlas == "mesh" and 0.05 < bake.coverage < 1
     err = _baked_vs_query(mesh.corner_uvs, bake.texture, spectra, ks)
     assert np.median(err) < 0.01 and np.percentile(err, 95) < 0.05
@@ -117,7 +117,7 @@ def test_xatlas_bake_and_obj(setup, tmp_path):
     from hktex_engine.mesh import load_mesh
 
     mesh, spectra, ks = setup
-    bake = bake_texture(spectra, ks, None, resolution=256)
+    bake = bake_texture(spectra, ks, None, resolution=160)
     assert bake.atlas == "xatlas"
     err = _baked_vs_query(bake.corner_uvs, bake.texture, spectra, ks)
     assert np.median(err) < 0.015

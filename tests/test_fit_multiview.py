@@ -111,11 +111,18 @@ def test_render_gradient_reaches_kernel_base_color(setup):
     from hktex_engine.render import RenderSettings
 
     mesh, spectra, train, _ = setup
-    scene = file_frame_scene(spectra, RenderSettings(width=24, height=24, spp=16))
+    init_scene = file_frame_scene(spectra, RenderSettings(width=24, height=24, spp=1))
     rng = np.random.default_rng(2)
     model = initial_model(
-        spectra, scene, train, FitParams(kernels=30), MultiViewOptions(), rng, torch.device("cpu")
+        spectra,
+        init_scene,
+        train,
+        FitParams(kernels=30),
+        MultiViewOptions(),
+        rng,
+        torch.device("cpu"),
     )
+    scene = file_frame_scene(spectra, RenderSettings(width=12, height=12, spp=8))
     with torch.no_grad():
         model.base_color[:] = torch.tensor([0.4, 0.5, 0.6])  # away from the clamp at 0 and 1
     scene.texture_plugin.albedo_fn = model.albedo
