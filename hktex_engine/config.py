@@ -25,7 +25,7 @@ class SpectralConfig:
     ``angles`` nodes span [0, pi] with both ends; ``anisotropies`` are eta values (grid
     coordinate s = ln(1 + eta)). ``rotation`` is the alignment mode: "block" (Procrustes inside
     clusters of near-equal eigenvalues; every column stays an eigenvector) or "full" (one
-    K x K Procrustes as the reference implementation does). Default "full": measured to
+    K x K Procrustes as the reference implementation does). "full" was measured to
     interpolate markedly better between nodes (docs/spectra.md, Decisions).
     """
 
@@ -33,7 +33,7 @@ class SpectralConfig:
     anisotropies: tuple[float, ...] = (1.0, 5.0, 15.0, 30.0, 60.0, 100.0, 200.0)
     k: int = 256
     k_iso: int = 65
-    rotation: Literal["block", "full"] = "full"
+    rotation: Literal["block", "full"] = "block"
     evecs_dtype: Literal["float16", "float32"] = "float32"
     tangent_field: Literal["axis_smoothed", "curvature"] = "axis_smoothed"
 
