@@ -232,7 +232,9 @@ def test_kernelset_record_and_render(alice: Client, fitted: dict) -> None:
     assert int.from_bytes(png[16:20], "big") == 48 and int.from_bytes(png[20:24], "big") == 40
 
 
-def test_async_client_answers_like_the_sync_client(alice: Client, fitted: dict) -> None:
+def test_async_client_answers_like_the_sync_client(
+    alice: Client, fitted: dict, mesh_files: tuple[Path, Path]
+) -> None:
     ks_id = fitted["job"].result.kernelset_id
     rng = np.random.default_rng(11)
     faces = rng.integers(0, fitted["mesh"].n_faces, 64)
@@ -248,6 +250,8 @@ def test_async_client_answers_like_the_sync_client(alice: Client, fitted: dict) 
             )
             with pytest.raises(NotFound):
                 await ac.get_kernelset("kst_missing")
+            again = await ac.upload_mesh(mesh_files[0], texture=mesh_files[1])  # streamed
+            assert again.id == fitted["mesh"].id
             return colors, job, records
 
     colors, job, records = asyncio.run(main())
