@@ -36,6 +36,8 @@ from hktex_engine.render import (
 from hktex_engine.views import Views
 
 TONEMAP_GAMMA = 2.2
+#: Training views rendered for the final metrics (evenly spread over the dataset).
+EVAL_VIEWS = 8
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -332,7 +334,9 @@ def fit_multiview(
     t_fit = loop.seconds
     scene.texture_plugin.albedo_fn = _frozen(model)
     t1 = time.perf_counter()
-    quality = evaluate_views(scene, views, spp=max(options.spp, 8))
+    # at most EVAL_VIEWS training views: a photo set of hundreds would cost more than the fit
+    shown = views.subset(np.linspace(0, len(views) - 1, min(len(views), EVAL_VIEWS)).astype(int))
+    quality = evaluate_views(scene, shown, spp=max(options.spp, 8))
     metrics = {
         "task": "fit_multiview",
         "psnr": quality["psnr"],  # training views, masked pixels, sRGB
@@ -343,6 +347,7 @@ def fit_multiview(
         "kernels": int(len(model)),
         "final_loss": float(np.mean(loop.losses[-10:])) if loop.losses else None,
         "views": len(views),
+        "eval_views": len(shown),
         "resolution": [views.width, views.height],
         "crop": options.crop,
         "spp": options.spp,
