@@ -24,7 +24,7 @@ def _setup(n=120, seed=0):
 
 
 def _params(**kw):
-    base = dict(kernels=120, max_kernels=200, steps=60, seed=3, checkpoint_every=20)
+    base = dict(kernels=120, max_kernels=200, steps=40, seed=3, checkpoint_every=10)
     base.update(kw)
     return FitParams(**base)
 
@@ -71,32 +71,32 @@ def test_cancel_leaves_checkpoint_and_resume_matches(tmp_path, monkeypatch):
 
     part, obj, geo = _setup()
     with pytest.raises(Cancelled):
-        run_fit(part, obj, _params(), *geo, progress=StopAt(33), checkpoint_dir=tmp_path)
+        run_fit(part, obj, _params(), *geo, progress=StopAt(23), checkpoint_dir=tmp_path)
     ck = latest_checkpoint(tmp_path)
-    assert ck is not None and ck.name == "step-000000033"
+    assert ck is not None and ck.name == "step-000000023"
     assert not list(tmp_path.glob(".tmp-*"))
 
     fresh, obj, geo = _setup()
     res = run_fit(fresh, obj, _params(), *geo, checkpoint_dir=tmp_path)
-    assert res.resumed_from == 33 and res.steps == 60
+    assert res.resumed_from == 23 and res.steps == 40
     for k, t in _rows(full).items():
         assert torch.equal(t, getattr(fresh, k).detach()), k
 
 
 def test_periodic_checkpoint_and_foreign_refused(tmp_path):
     m, obj, geo = _setup()
-    run_fit(m, obj, _params(steps=45), *geo, checkpoint_dir=tmp_path, fingerprint={"a": 1})
-    assert latest_checkpoint(tmp_path).name == "step-000000040"
+    run_fit(m, obj, _params(steps=25), *geo, checkpoint_dir=tmp_path, fingerprint={"a": 1})
+    assert latest_checkpoint(tmp_path).name == "step-000000020"
     m, obj, geo = _setup()
     with pytest.raises(CheckpointError):
-        run_fit(m, obj, _params(steps=45), *geo, checkpoint_dir=tmp_path, fingerprint={"a": 2})
+        run_fit(m, obj, _params(steps=25), *geo, checkpoint_dir=tmp_path, fingerprint={"a": 2})
 
 
 def test_progress_is_throttled():
     m, obj, geo = _setup()
     sink = StopAt()
-    run_fit(m, obj, _params(steps=40), *geo, progress=sink)
-    assert sink.last == 40 and sink.reports < 40
+    run_fit(m, obj, _params(steps=20), *geo, progress=sink)
+    assert sink.last == 20 and sink.reports < 20
 
 
 def _fake_clock():
