@@ -183,3 +183,33 @@ def test_tangent_gradient_agrees_with_the_kernel_models_own(sphere):
     theirs = model.centre_tangent_grad().to(ours.dtype)
     assert float(theirs.abs().max()) > 0
     assert torch.allclose(ours, theirs, rtol=1e-4, atol=1e-6 * float(theirs.abs().max()))
+
+
+def test_cli_views_flag_calls_fit_multiview(tmp_path, capsys, sphere, monkeypatch):
+    """--views hands over to fit_multiview (the renderer's task) with the CLI's params."""
+    import hktex_engine.fit_multiview as fmv
+    import hktex_engine.views as views_mod
+    from hktex_engine.cli import main
+    from hktex_engine.fit_uv import FitResult
+    from hktex_engine.spectra import write_spectra
+    from hktex_engine.synthetic import write_textured_obj
+
+    mesh, spectra = sphere
+    obj = write_textured_obj(tmp_path / "m.obj", *two_colour_arrays())
+    sdir = write_spectra(spectra, tmp_path / "spectra")
+    (tmp_path / "views").mkdir()
+    seen = {}
+    ks = initial_kernelset(mesh, spectra, FitParams(kernels=100), np.random.default_rng(0))
+
+    def fake_fit(mesh_, spectra_, views, params, progress, checkpoint_dir, device):
+        seen.update(views=views, params=params)
+        return FitResult(ks, {"psnr": 12.5}, {})
+
+    monkeypatch.setattr(fmv, "fit_multiview", fake_fit)
+    monkeypatch.setattr(views_mod, "load_views", lambda path: f"views at {path}")
+    out = tmp_path / "mv.hkt"
+    argv = [str(obj), "-o", str(out), "--spectra", str(sdir), "--views", str(tmp_path / "views")]
+    assert main(["fit", *argv, "--kernels", "100", "--steps", "7", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["task"] == "fit_multiview" and out.is_file()
+    assert seen["params"].steps == 7 and seen["views"].startswith("views at")
