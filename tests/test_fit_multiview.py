@@ -203,3 +203,15 @@ def test_constant_kernel_set_renders_like_constant_uv_texture(setup):
     b = render_uv(flat, cam, settings, seed=5)
     assert np.abs(a - b).max() < 1e-3
     assert b.min() < 0.99  # the object is in view
+
+
+def test_tonemap_log_then_gamma():
+    from hktex_engine.fit_multiview import tonemap
+
+    x = torch.tensor([0.0, 0.2, 1.0, 4.0], requires_grad=True)
+    y = tonemap(x)
+    ref = (np.log1p(x.detach().numpy()) + 1e-4) ** (1 / 2.2)
+    assert np.allclose(y.detach().numpy(), ref, rtol=1e-6)
+    y.sum().backward()
+    assert torch.isfinite(x.grad).all() and (x.grad > 0).all()  # monotone, finite at black
+    assert tonemap(torch.tensor([-1.0])).item() == pytest.approx(1e-4 ** (1 / 2.2))
