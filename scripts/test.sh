@@ -5,6 +5,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 . .venv/bin/activate
 
+# One compute thread per process: the suite runs worker processes and servers beside pytest,
+# and oversubscribed OpenMP/BLAS/torch threads were measured 10-45x slower on 2 cores
+# (docs/decisions.md). Override by exporting these before running.
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OPENBLAS_NUM_THREADS=${OPENBLAS_NUM_THREADS:-1}
+export MKL_NUM_THREADS=${MKL_NUM_THREADS:-1}
+
 ruff check .
 ruff format --check .
 
