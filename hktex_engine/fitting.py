@@ -113,13 +113,14 @@ def run_fit(
     loop under ``torch.use_deterministic_algorithms`` (restored afterwards): without it the
     parallel scatter-adds of the backward pass sum in a thread-dependent order and two runs
     with one seed differ by float rounding (measured: 3e-8..2e-7 after 8 steps on 2 threads).
-    On CUDA, ops without a deterministic kernel only warn.
+    Only on the CPU: CUDA runs are not bitwise reproducible anyway (atomics in many kernels)
+    and the setting would make torch warn or fail on ops without a deterministic kernel.
     """
     previous = (
         torch.are_deterministic_algorithms_enabled(),
         torch.is_deterministic_algorithms_warn_only_enabled(),
     )
-    if deterministic:
+    if deterministic and model.base_color.device.type == "cpu":
         torch.use_deterministic_algorithms(True, warn_only=True)
     try:
         return _run_fit(
