@@ -62,7 +62,10 @@ def config_from(args: argparse.Namespace):
     from hktex_engine.config import SpectralConfig
 
     aniso = tuple(float(x) for x in args.anisotropies.split(","))
-    return SpectralConfig(angles=args.angles, anisotropies=aniso, k=args.k, k_iso=args.k_iso)
+    rotation = getattr(args, "rotation", None) or SpectralConfig().rotation
+    return SpectralConfig(
+        angles=args.angles, anisotropies=aniso, k=args.k, k_iso=args.k_iso, rotation=rotation
+    )
 
 
 def full_grid_estimate(ours: dict, full_nodes: int, full_distinct: int) -> float:
@@ -120,6 +123,7 @@ def child_ours(args: argparse.Namespace) -> dict:
         "solver": args.solver,
         "workers": args.workers,
         "methods": sorted({e["method"] for e in log}),
+        "rotation": config.rotation,
         "seconds_per_solved_node": float(np.mean([e["seconds"] for e in solved])),
     }
 
@@ -223,6 +227,8 @@ def run_child(kind: str, mesh: str, workdir: Path, args: argparse.Namespace) -> 
     cmd += ["--angles", str(args.angles), "--anisotropies", args.anisotropies]
     cmd += ["--k", str(args.k), "--k-iso", str(args.k_iso), "--naive-nodes", str(args.naive_nodes)]
     cmd += ["--solver", args.solver, "--workers", str(args.workers)]
+    if args.rotation:
+        cmd += ["--rotation", args.rotation]
     out = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         return {"error": out.stderr.strip().splitlines()[-1] if out.stderr else "failed"}
@@ -313,6 +319,7 @@ def main() -> None:
     ap.add_argument("--k-iso", type=int, default=65)
     ap.add_argument("--solver", choices=("cold", "warm"), default="cold")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--rotation", choices=("block", "full"), default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--child", choices=("ours", "naive"), help=argparse.SUPPRESS)
     ap.add_argument("--child-mesh", help=argparse.SUPPRESS)
@@ -332,6 +339,7 @@ def main() -> None:
             "k_iso": args.k_iso,
             "solver": args.solver,
             "workers": args.workers,
+            "rotation": args.rotation or "config default",
         },
         "naive_nodes_timed": args.naive_nodes,
         "meshes": {},
