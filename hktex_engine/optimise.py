@@ -105,18 +105,22 @@ def face_unit_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tens
 def trace_on_surface(
     tracer: Tracer, face_ids: torch.Tensor, bary: torch.Tensor, vectors: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Call the tracer (numpy or torch implementation) and return torch tensors on our device."""
-    device, dtype = bary.device, bary.dtype
+    """Call the tracer with float64 tensors on their device; answers come back as tensors.
+
+    ``geodesics.SurfaceTracer`` answers torch input with tensors on the input's device (no
+    host round trip on CUDA); a tracer answering numpy is accepted as well.
+    """
+    device = bary.device
     f_end, b_end, v_end = tracer.trace(
-        face_ids.detach().cpu().numpy(),
-        bary.detach().cpu().numpy().astype(np.float64),
-        vectors.detach().cpu().numpy().astype(np.float64),
+        face_ids.detach(),
+        bary.detach().to(torch.float64),
+        vectors.detach().to(torch.float64),
     )
-    return (
-        torch.as_tensor(np.asarray(f_end), dtype=torch.long, device=device),
-        torch.as_tensor(np.asarray(b_end), dtype=dtype, device=device),
-        torch.as_tensor(np.asarray(v_end), dtype=vectors.dtype, device=device),
-    )
+
+    def back(x, dtype: torch.dtype) -> torch.Tensor:
+        return torch.as_tensor(x if torch.is_tensor(x) else np.asarray(x)).to(device, dtype)
+
+    return back(f_end, torch.long), back(b_end, bary.dtype), back(v_end, vectors.dtype)
 
 
 @dataclass

@@ -61,6 +61,7 @@ class FlatTracer:
 
     def trace(self, face_ids, bary, vectors):
         self.calls += 1
+        face_ids, bary, vectors = (np.asarray(x) for x in (face_ids, bary, vectors))
         start = (self.v[self.f[face_ids]] * bary[:, :, None]).sum(1)
         end = start + vectors
         end[:, :2] = np.clip(end[:, :2], self.lo, self.hi)

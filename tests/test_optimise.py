@@ -108,7 +108,7 @@ class _RotatingTracer:
         self.R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
 
     def trace(self, face_ids, bary, vectors):
-        return face_ids, bary, vectors @ self.R.T
+        return face_ids, bary, np.asarray(vectors) @ self.R.T
 
 
 def test_momentum_is_the_transported_vector_and_accumulates():
