@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -33,6 +34,7 @@ AlbedoFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 _VARIANT_LOCK = threading.Lock()
 _STATE: dict[str, Any] = {}
+_THREAD = threading.local()
 
 
 # --------------------------------------------------------------------------- variant
@@ -47,36 +49,67 @@ def ensure_variant(prefer_cuda: bool | None = None) -> str:
     called from inside a plugin cannot be traced symbolically (STACK-NOTES.md).
     """
     with _VARIANT_LOCK:
-        if "variant" in _STATE:
-            return _STATE["variant"]
+        if "variant" not in _STATE:
+            _STATE["variant"] = _select_variant(prefer_cuda)
+    thread_flags()
+    return _STATE["variant"]
+
+
+def _select_variant(prefer_cuda: bool | None) -> str:
+    """Set Mitsuba's process-wide variant and register our plugin (under ``_VARIANT_LOCK``)."""
+    try:
+        import mitsuba as mi
+    except Exception as exc:  # pragma: no cover - import failure is environmental
+        raise RenderError(f"cannot import mitsuba/drjit: {exc}") from exc
+    want_cuda = torch.cuda.is_available() if prefer_cuda is None else prefer_cuda
+    candidates = (["cuda_ad_rgb"] if want_cuda else []) + ["llvm_ad_rgb"]
+    errors = []
+    for variant in candidates:
         try:
-            import drjit as dr
-            import mitsuba as mi
-        except Exception as exc:  # pragma: no cover - import failure is environmental
-            raise RenderError(f"cannot import mitsuba/drjit: {exc}") from exc
-        want_cuda = torch.cuda.is_available() if prefer_cuda is None else prefer_cuda
-        candidates = (["cuda_ad_rgb"] if want_cuda else []) + ["llvm_ad_rgb"]
-        errors = []
-        for variant in candidates:
-            try:
-                mi.set_variant(variant)
-                mi.Float([0.0, 1.0]) + 1.0  # forces the backend (LLVM / CUDA) to initialise
-                break
-            except Exception as exc:  # a missing libLLVM/driver surfaces here
-                errors.append(f"{variant}: {exc}")
-        else:
-            raise RenderError(
-                "no Mitsuba AD variant loads ("
-                + "; ".join(errors)
-                + "); on the CPU install libLLVM 19 (apt-get install libllvm19) or set "
-                "DRJIT_LIBLLVM_PATH"
-            )
-        dr.set_flag(dr.JitFlag.SymbolicLoops, False)
-        dr.set_flag(dr.JitFlag.SymbolicCalls, False)
-        dr.set_flag(dr.JitFlag.SymbolicConditionals, False)
-        mi.register_texture("hktex_albedo", lambda props: _texture_class()(props))
-        _STATE["variant"] = variant
-        return variant
+            mi.set_variant(variant)
+            mi.Float([0.0, 1.0]) + 1.0  # forces the backend (LLVM / CUDA) to initialise
+            break
+        except Exception as exc:  # a missing libLLVM/driver surfaces here
+            errors.append(f"{variant}: {exc}")
+    else:
+        raise RenderError(
+            "no Mitsuba AD variant loads ("
+            + "; ".join(errors)
+            + "); on the CPU install libLLVM 19 (apt-get install libllvm19) or set "
+            "DRJIT_LIBLLVM_PATH"
+        )
+    mi.register_texture("hktex_albedo", lambda props: _texture_class()(props))
+    _bound_threads()
+    return variant
+
+
+def _bound_threads() -> None:
+    """Size Dr.Jit's CPU pool like torch's: ``OMP_NUM_THREADS`` when set (the service sets it
+    per job so that concurrent jobs do not oversubscribe the cores), else Dr.Jit's default."""
+    raw = os.environ.get("OMP_NUM_THREADS", "")
+    if raw.isdigit() and int(raw) >= 1:
+        import drjit as dr
+
+        dr.set_thread_count(int(raw))
+
+
+def thread_flags() -> None:
+    """Switch off Dr.Jit's symbolic loops, calls and conditionals on the calling thread.
+
+    Why per thread: Dr.Jit keeps its JIT flags in thread-local state, so flags set once per
+    process leave every other thread symbolic, and the first render there fails inside
+    Mitsuba ("jit_var_schedule not permitted", a PyTorch call cannot be traced). Web servers
+    and autograd engines call us from pools of threads, so every entry point that makes Dr.Jit
+    trace calls this; it is a thread-local check after the first call.
+    """
+    if getattr(_THREAD, "flags_set", False):
+        return
+    import drjit as dr
+
+    dr.set_flag(dr.JitFlag.SymbolicLoops, False)
+    dr.set_flag(dr.JitFlag.SymbolicCalls, False)
+    dr.set_flag(dr.JitFlag.SymbolicConditionals, False)
+    _THREAD.flags_set = True
 
 
 def render_device() -> torch.device:
@@ -507,6 +540,7 @@ class RenderScene:
         import drjit as dr
         import mitsuba as mi
 
+        thread_flags()
         sensor = sensor if sensor is not None else self.sensor(camera)
         plugin = self.texture_plugin
         inner = plugin.albedo_fn if plugin is not None else None
@@ -555,6 +589,7 @@ class RenderScene:
         import drjit as dr
         import mitsuba as mi
 
+        thread_flags()
         sensor = sensor if sensor is not None else self.sensor(camera)
         film = sensor.film()
         (w, h), (ox, oy), (fw, fh) = film.crop_size(), film.crop_offset(), film.size()
@@ -641,6 +676,7 @@ class _RenderJob:
         import drjit as dr
         import mitsuba as mi
 
+        thread_flags()
         sc = self.scene
         plugin = sc.texture_plugin
         self.inner = plugin.albedo_fn
@@ -671,6 +707,7 @@ class _RenderJob:
         import drjit as dr
         import mitsuba as mi
 
+        thread_flags()  # autograd may run backward on another thread (e.g. CUDA's)
         plugin = self.scene.texture_plugin
         plugin.albedo_fn = self.albedo
         self.recording = True

@@ -43,9 +43,8 @@ class WarmQuery:
 
 
 def load_warm(spectra_path: str, hkt_path: str, mesh_hash: str) -> WarmQuery:
-    from hktex_engine.query import AlbedoQuery
-
     from hktex_engine.hkt import load_hkt
+    from hktex_engine.query import AlbedoQuery
     from hktex_engine.spectra import load_spectra
 
     spectra = load_spectra(spectra_path, mmap=True)
@@ -76,3 +75,8 @@ class QueryCache:
             while len(self._entries) > self.size:
                 self._entries.popitem(last=False)
         return entry
+
+    def discard(self, key: str) -> None:
+        """Forget a kernel set (it was deleted): its memory goes with the last reference."""
+        with self._lock:
+            self._entries.pop(key, None)

@@ -55,6 +55,7 @@ def create_job(
     _check_params(params)
     spectra = request_spectra(svc, owner, mesh, config, body.priority)
     with svc.db.write(lock=True) as s:
+        own(s, MeshRow, mesh.id, owner, "mesh")  # deleted meanwhile? (deletes take this lock)
         if jobqueue.count_active(s, owner) >= svc.settings.max_jobs_per_owner:
             raise HTTPException(
                 429, detail=f"at most {svc.settings.max_jobs_per_owner} active jobs per owner"
@@ -165,7 +166,10 @@ async def job_events(
             await asyncio.sleep(SSE_POLL_SECONDS)
             if await request.is_disconnected():
                 return
-            record = await run_in_threadpool(load)
+            try:
+                record = await run_in_threadpool(load)
+            except HTTPException:  # deleted meanwhile (with its mesh): nothing more to say
+                return
 
     headers = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
     return StreamingResponse(stream(), media_type="text/event-stream", headers=headers)

@@ -30,6 +30,7 @@ from hktex_server.routes_meshes import ERRORS
 from hktex_server.state import ServiceState, service
 from hktex_server.uploads import read_body
 from pydantic import ValidationError
+from sqlalchemy import select
 
 router = APIRouter(prefix="/v1", tags=["kernelsets"])
 
@@ -60,6 +61,25 @@ def get_kernelset(
 ):
     with svc.db.read() as s:
         return kernelset_record(own(s, KernelSetRow, kernelset_id, owner, "kernel set"))
+
+
+@router.delete("/kernelsets/{kernelset_id}", status_code=204, responses=ERRORS)
+def delete_kernelset(
+    kernelset_id: str, owner: str = Depends(current_owner), svc: ServiceState = Depends(service)
+) -> Response:
+    """Delete a kernel set; its ``.hkt`` file goes unless another record (any owner) holds the
+    same bytes (files are content-addressed). The job that made it keeps its record."""
+    with svc.db.write(lock=True) as s:
+        row = own(s, KernelSetRow, kernelset_id, owner, "kernel set")
+        s.delete(row)
+        s.flush()
+        shared = s.execute(
+            select(KernelSetRow.id).where(KernelSetRow.path == row.path).limit(1)
+        ).first()
+    svc.queries.discard(kernelset_id)
+    if shared is None:
+        svc.store.delete(row.path)
+    return Response(status_code=204)
 
 
 @router.get(

@@ -16,7 +16,16 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from hktex_server import jobqueue, schemas
 from hktex_server.auth import current_owner
-from hktex_server.db import ACTIVE_STATES, JobRow, MeshRow, SpectraRow, ViewsRow, new_id, now
+from hktex_server.db import (
+    ACTIVE_STATES,
+    JobRow,
+    KernelSetRow,
+    MeshRow,
+    SpectraRow,
+    ViewsRow,
+    new_id,
+    now,
+)
 from hktex_server.records import (
     mesh_record,
     not_found,
@@ -223,7 +232,10 @@ def get_mesh(
 def delete_mesh(
     mesh_id: str, owner: str = Depends(current_owner), svc: ServiceState = Depends(service)
 ) -> Response:
-    """Delete the record; its blobs go once no other record (any owner) refers to them."""
+    """Delete the mesh with everything of its own: its finished jobs and their kernel sets.
+    409 while a job of it is queued or running (cancel it first). Shared things go only when
+    nothing refers to them any more: blobs (content-addressed, any owner's rows) and the
+    spectra of its geometry (no mesh of that content left, no kernel set or job using them)."""
     with svc.db.write(lock=True) as s:
         row = own(s, MeshRow, mesh_id, owner, "mesh")
         busy = s.execute(
@@ -233,21 +245,62 @@ def delete_mesh(
         ).first()
         if busy is not None:
             raise HTTPException(409, detail=f"job {busy[0]} still uses this mesh; cancel it first")
-        s.delete(row)
+        kernelsets = list(
+            s.execute(
+                select(KernelSetRow).where(
+                    KernelSetRow.owner == owner, KernelSetRow.mesh_id == mesh_id
+                )
+            ).scalars()
+        )
+        jobs = [
+            j
+            for j in s.execute(
+                select(JobRow).where(JobRow.owner == owner, JobRow.mesh_id == mesh_id)
+            ).scalars()
+        ]
+        for dependent in [*kernelsets, *jobs, row]:
+            s.delete(dependent)
         s.flush()
-        orphaned = []
-        for blob, column in (
-            (row.mesh_blob, MeshRow.mesh_blob),
-            (row.texture_blob, MeshRow.texture_blob),
-        ):
-            if (
-                blob
-                and s.execute(select(MeshRow.id).where(column == blob).limit(1)).first() is None
-            ):
-                orphaned.append(blob)
+        orphaned = [
+            blob
+            for blob, column in (
+                (row.mesh_blob, MeshRow.mesh_blob),
+                (row.texture_blob, MeshRow.texture_blob),
+                *((k.path, KernelSetRow.path) for k in kernelsets),
+            )
+            if blob and s.execute(select(column).where(column == blob).limit(1)).first() is None
+        ]
+        orphaned += _orphaned_spectra(s, row.mesh_hash)
+    for kernelset in kernelsets:
+        svc.queries.discard(kernelset.id)
     for blob in orphaned:
         svc.store.delete(blob)
+    for job in jobs:
+        (svc.store.root / "logs" / f"{job.id}.log").unlink(missing_ok=True)
     return Response(status_code=204)
+
+
+def _orphaned_spectra(s, mesh_hash: str) -> list[str]:
+    """Delete the spectra rows of a geometry no mesh has any more (nothing else can reach
+    them: they are found by mesh content); return their directories and archives to remove.
+    Rows still used by a kernel set or a job are kept."""
+    if s.execute(select(MeshRow.id).where(MeshRow.mesh_hash == mesh_hash).limit(1)).first():
+        return []
+    paths = []
+    for spectra in s.execute(select(SpectraRow).where(SpectraRow.mesh_hash == mesh_hash)).scalars():
+        used = (
+            s.execute(
+                select(KernelSetRow.id).where(KernelSetRow.spectra_id == spectra.id).limit(1)
+            ).first()
+            or s.execute(select(JobRow.id).where(JobRow.spectra_id == spectra.id).limit(1)).first()
+        )
+        if used:
+            continue
+        s.delete(spectra)
+        if spectra.path:
+            paths.append(spectra.path)
+        paths.append(f"archives/{spectra.id}.zip")
+    return paths
 
 
 # ---------------------------------------------------------------- spectra

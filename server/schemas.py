@@ -18,9 +18,13 @@ TaskName = Literal["fit_uv", "fit_multiview"]
 
 
 class _Strict(BaseModel):
-    """Requests: unknown fields are an error (a typo must not silently fall back to a default)."""
+    """Requests: unknown fields are an error (a typo must not silently fall back to a default),
+    and values keep their JSON type: pydantic's lax mode would read ``false`` as ``0.0``,
+    ``"5"`` as ``5`` and ``1`` as ``true``, silently changing what the caller meant. Strict
+    mode still takes a JSON integer where a number is declared (``[1, 5]`` anisotropies), but
+    not ``1.0`` where an integer is declared."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 # ---------------------------------------------------------------- requests
@@ -133,6 +137,7 @@ class SpectraRecord(BaseModel):
 class JobProgress(BaseModel):
     step: int = 0
     total: int = 0
+    stage: str | None = Field(None, description='phase of the task, e.g. "grid", "fit"')
     loss: float | None = None
     kernel_count: int | None = None
     metrics: dict[str, float] = Field(default_factory=dict)

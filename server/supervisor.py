@@ -137,11 +137,7 @@ class Supervisor:
         return min(self.devices, key=lambda d: load[d])
 
     def _spawn(self, claim: jobqueue.Claim) -> None:
-        env = os.environ.copy()
-        env["CUDA_VISIBLE_DEVICES"] = "" if claim.device in (None, "cpu") else claim.device
-        env["HKTEX_LEASE_TOKEN"] = claim.token  # not on the command line: ps shows argv
-        # the job needs no API tokens: keep them out of its environment
-        env["HKTEX_WORKER_SETTINGS"] = self.settings.model_dump_json(exclude={"tokens"})
+        env = worker_env(self.settings, claim.device, claim.token)
         cmd = [sys.executable, "-m", "hktex_server.worker_main", claim.job_id]
         log_file = open(self.log_dir / f"{claim.job_id}.log", "ab")  # noqa: SIM115
         log_file.write(f"--- {time.ctime()} {self.name} device={claim.device}\n".encode())
@@ -210,6 +206,28 @@ class Supervisor:
             "devices": self.devices,
             "running": {jid: c.proc.pid for jid, c in self.children.items()},
         }
+
+
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def worker_env(settings: Settings, device: str | None, token: str) -> dict[str, str]:
+    """The environment of one job process.
+
+    Thread counts go in as environment variables because OpenMP, OpenBLAS and MKL read them
+    once, when their library loads: setting them inside the child after ``import torch`` or
+    ``import numpy`` would be too late for the pools those imports create.
+    """
+    env = os.environ.copy()
+    env["CUDA_VISIBLE_DEVICES"] = "" if device in (None, "cpu") else device
+    env["HKTEX_LEASE_TOKEN"] = token  # not on the command line: ps shows argv
+    # the job needs no API tokens: keep them out of its environment
+    env["HKTEX_WORKER_SETTINGS"] = settings.model_dump_json(exclude={"tokens"})
+    threads = str(settings.threads_per_job())
+    for var in THREAD_VARS:
+        env[var] = threads
+    env["HKTEX_JOB_THREADS"] = threads
+    return env
 
 
 def _signal_group(proc: subprocess.Popen, sig: int) -> None:

@@ -165,6 +165,11 @@ def main(argv: list[str] | None = None) -> int:
     settings = Settings.model_validate_json(raw) if raw else Settings()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     signal.signal(signal.SIGTERM, _on_sigterm)
+    # OMP/OpenBLAS/MKL_NUM_THREADS come from the supervisor (supervisor.worker_env): torch,
+    # numpy and faiss size their pools from them when the task imports them.
+    print(
+        f"job {args.job_id}: {os.environ.get('OMP_NUM_THREADS', 'all')} CPU thread(s)", flush=True
+    )
     db = Database(settings.resolved_database_url())
     try:
         rc = run_job(settings, db, args.job_id, token)

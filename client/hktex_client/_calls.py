@@ -196,6 +196,10 @@ def get_kernelset(kernelset_id: str) -> Call[KernelSetRecord]:
     return Call("GET", f"{API}/kernelsets/{kernelset_id}", _model(KernelSetRecord))
 
 
+def delete_kernelset(kernelset_id: str) -> Call[None]:
+    return Call("DELETE", f"{API}/kernelsets/{kernelset_id}", _none)
+
+
 def download_kernelset(kernelset_id: str, dest: Path) -> Call[Path]:
     return Call(
         "GET", f"{API}/kernelsets/{kernelset_id}/file", lambda r: dest, stream_to=Path(dest)

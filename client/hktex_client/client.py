@@ -301,6 +301,10 @@ class Client:
     def get_kernelset(self, kernelset_id: str) -> KernelSetRecord:
         return self._run(calls.get_kernelset(kernelset_id))
 
+    def delete_kernelset(self, kernelset_id: str) -> None:
+        """Delete a kernel set (its file goes once no other record holds the same bytes)."""
+        self._run(calls.delete_kernelset(kernelset_id))
+
     def download_kernelset(self, kernelset_id: str, path: str | Path) -> Path:
         """Stream the ``.hkt`` file to ``path`` (written atomically)."""
         return self._run(calls.download_kernelset(kernelset_id, Path(path)))
@@ -531,6 +535,9 @@ class AsyncClient:
 
     async def get_kernelset(self, kernelset_id: str) -> KernelSetRecord:
         return await self._run(calls.get_kernelset(kernelset_id))
+
+    async def delete_kernelset(self, kernelset_id: str) -> None:
+        await self._run(calls.delete_kernelset(kernelset_id))
 
     async def download_kernelset(self, kernelset_id: str, path: str | Path) -> Path:
         return await self._run(calls.download_kernelset(kernelset_id, Path(path)))

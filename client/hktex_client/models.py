@@ -61,6 +61,7 @@ class JobProgress(_Record):
 
     step: int = 0
     total: int = 0
+    stage: str | None = None
     loss: float | None = None
     kernel_count: int | None = None
     metrics: dict[str, float] = Field(default_factory=dict)
