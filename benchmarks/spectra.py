@@ -77,6 +77,11 @@ def full_grid_estimate(ours: dict, full_nodes: int, full_distinct: int) -> float
     return fixed + full_distinct * per_node + full_nodes * align
 
 
+def _is_solve(method: str) -> bool:
+    """Nodes that were solved (not copied from an equal operator, not the isotropic basis)."""
+    return not method.startswith("copy") and method != "isotropic"
+
+
 def reset_peak() -> None:
     """Reset this process's peak RSS (VmHWM), e.g. after decoding a mesh's 4k texture."""
     Path("/proc/self/clear_refs").write_text("5")
@@ -110,7 +115,7 @@ def child_ours(args: argparse.Namespace) -> dict:
     )
     seconds = time.perf_counter() - t0
     log = sp.manifest["solver"]["nodes"]
-    solved = [e for e in log if e["method"].startswith("cold") or e["method"] == "warm"]
+    solved = [e for e in log if _is_solve(e["method"])]
     return {
         "n_vertices": mesh.n_vertices,
         "seconds": seconds,
@@ -140,7 +145,7 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 def child_naive(args: argparse.Namespace) -> dict:
     """Paired timings (ours and naive on the same nodes, alternating, so the shared machine's
     load hits both alike) and accuracy of the stored nodes against the naive exact solve."""
-    from hktex_engine.eigensolver import eigs_cold, eigs_lowest, estimate_lambda_k, residuals
+    from hktex_engine.eigensolver import eigs_cold, eigs_sliced, estimate_lambda_k, residuals
     from hktex_engine.operators import AlboAssembler
     from hktex_engine.spectra import load_spectra
 
@@ -150,7 +155,7 @@ def child_naive(args: argparse.Namespace) -> dict:
     asm = AlboAssembler(V, F, np.asarray(sp.face_frames))
     S, K = len(sp.grid_eta), sp.evals.shape[1]
     info = sp.manifest["solver"]
-    solved = [e["node"] for e in info["nodes"] if e["method"].startswith("cold")]
+    solved = [e["node"] for e in info["nodes"] if _is_solve(e["method"])]
     pick = [solved[int(i)] for i in np.linspace(0, len(solved) - 1, args.naive_nodes)]
     src = np.random.default_rng(0).choice(len(V), 16, replace=False)
     rows = []
@@ -164,7 +169,7 @@ def child_naive(args: argparse.Namespace) -> dict:
             if which == "naive":
                 vals, vecs = eigs_cold(L, M, K)
             else:
-                vals, vecs, _ = eigs_lowest(L, M, K, est)
+                vals, vecs, _ = eigs_sliced(L, M, K, est)
             runs[which] = (time.perf_counter() - t0, vals, vecs)
         t_naive, exact_vals, exact_vecs = runs["naive"]
         t_ours, our_vals, our_vecs = runs["ours"]

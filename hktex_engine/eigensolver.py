@@ -103,6 +103,54 @@ def eigs_lowest(
     return vals, vecs, "cold (shift below 0)"
 
 
+#: Below this K a single ARPACK run is cheap enough that slicing does not pay.
+SLICE_MIN_K = 64
+
+
+def eigs_sliced(
+    L: sp.spmatrix, mass: np.ndarray, k: int, lambda_k_estimate: float | None = None
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Lowest ``k`` eigenpairs from two half-size ARPACK runs (spectrum slicing).
+
+    ARPACK's cost is dominated by orthogonalising ~2k Lanczos vectors (n k^2), so two runs
+    of ~k/2 + overlap cost ~0.6 of one run of k (measured 1.5 s vs 2.5 s on bob, K = 256).
+    Slice 1 is the lowest ``k1`` pairs (:func:`eigs_lowest`); slice 2 the pairs nearest a
+    shift placed, by Weyl's linear growth of eigenvalues, so that its interval overlaps the
+    top of slice 1 and reaches past lambda_k. Each slice holds every eigenvalue inside its
+    interval, so cutting both at a gap strictly inside the overlap loses and duplicates
+    nothing (pairs from either side of a gap are M-orthogonal). Whenever the overlap or the
+    reach is not there, it falls back to one run of ``k``.
+    """
+    if k < SLICE_MIN_K:
+        return eigs_lowest(L, mass, k, lambda_k_estimate)
+    margin = max(4, k // 16)
+    k1 = k // 2 + margin
+    est1 = None if lambda_k_estimate is None else lambda_k_estimate * k1 / k
+    w1, X1, method1 = eigs_lowest(L, mass, k1, est1)
+    low = w1[k // 2 - margin]  # slice 2 must reach down to here...
+    high = w1[-1] * (k + margin) / k1  # ...and up to about lambda_(k + margin)
+    k2 = k - k // 2 + 2 * margin
+    try:
+        w2, X2 = eigs_cold(L, mass, k2, sigma=0.5 * (low + high))
+    except SpectraError:  # e.g. the shift hit an eigenvalue exactly: do it the plain way
+        w2 = X2 = None
+    if w2 is None:
+        vals, vecs, _ = eigs_lowest(L, mass, k, lambda_k_estimate)
+        return vals, vecs, "cold (slice failed)"
+    # cut at the widest gap between slice-1 eigenvalues strictly inside the overlap
+    inside = np.nonzero((w1[:-1] > w2[0]) & (w1[1:] < w1[-1]))[0]
+    if len(inside) >= 1 and w2[0] < w1[-1]:
+        i = inside[np.argmax(w1[inside + 1] - w1[inside])]
+        cut = 0.5 * (w1[i] + w1[i + 1])
+        keep1, keep2 = w1 < cut, w2 > cut
+        if keep1.sum() + keep2.sum() >= k and w2[-1] > w1[-1]:
+            vals = np.r_[w1[keep1], w2[keep2]][:k]
+            vecs = np.hstack([X1[:, keep1], X2[:, keep2]])[:, :k]
+            return vals, vecs, "sliced" if method1 == "cold" else "sliced (shift below 0)"
+    vals, vecs, _ = eigs_lowest(L, mass, k, lambda_k_estimate)
+    return vals, vecs, "cold (slices did not meet)"
+
+
 def canonical_signs(vecs: np.ndarray) -> np.ndarray:
     """Flip each column so its largest-magnitude entry is positive (a reproducible sign)."""
     idx = np.argmax(np.abs(vecs), axis=0)

@@ -154,6 +154,26 @@ def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
     np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
 
 
+def test_spectrum_slicing_equals_one_solve(mesh):
+    from hktex_engine.eigensolver import eigs_sliced, estimate_lambda_k
+    from hktex_engine.operators import reference_tangent_field
+
+    V, F = mesh.vertices, mesh.faces
+    M = lumped_mass(V, F)
+    iso, _ = eigs_cold(cotangent_stiffness(V, F), M, 80)
+    L = AlboAssembler(V, F, reference_tangent_field(V, F)).stiffness(1.2, 15.0)
+    exact, exact_vecs = eigs_cold(L, M, 80)
+    vals, vecs, method = eigs_sliced(L, M, 80, estimate_lambda_k(iso[-1], 15.0))
+    assert method == "sliced"
+    np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(vecs.T @ (M[:, None] * vecs), np.eye(80), atol=1e-8)
+    assert residuals(L, M, vals, vecs).max() < 1e-8
+    # same span as the single solve (heat kernels equal)
+    src = np.array([0, 300])
+    h_a, h_b = _heat(vals, vecs, src, 0.05), _heat(exact, exact_vecs, src, 0.05)
+    assert np.linalg.norm(h_a - h_b) < 1e-8 * np.linalg.norm(h_b)
+
+
 def test_too_few_vertices_is_a_spectra_error(mesh):
     with pytest.raises(SpectraError):
         compute_spectra(mesh, SpectralConfig(angles=2, anisotropies=(1.0,), k=700, k_iso=9))
