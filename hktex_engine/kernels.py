@@ -48,6 +48,8 @@ VERTEX_PATH_COST = 24
 PAIR_CHUNK = 16384
 #: Points per checkpointed chunk when a differentiable batch is larger than this.
 GRAD_CHUNK_POINTS = 1024
+#: Extra nearest centres fetched before the exact float64 cut to ``K_s`` (see ``_exact_cut``).
+KNN_MARGIN = 8
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
 BARY_TOL = 1e-3
 
@@ -420,8 +422,10 @@ class HeatKernelModel(nn.Module):
         bary = _query_float(bary, self.field.device, self.field.dtype)
         self._ensure_knn()
         k_s = min(self.config.k_search, len(self))
-        cand = self._knn.search(self.field.embedding_at(face_ids, bary), k_s)
-        return self._blend(face_ids, bary, cand, return_aux)
+        emb_y = self.field.embedding_at(face_ids, bary)
+        cand = self._knn.search(emb_y, k_s + KNN_MARGIN)
+        cand, d2 = _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)
+        return self._blend(face_ids, bary, cand, return_aux, d2)
 
     def albedo_bruteforce(
         self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
@@ -446,11 +450,21 @@ class HeatKernelModel(nn.Module):
         r = self._ratio(face_ids, bary, cand)
         return soft_step(r, self.threshold[cand], self.sharpness[cand]), cand
 
-    def _blend(self, face_ids, bary, cand, return_aux):
-        rho, cand = self.responses(face_ids, bary, cand)
-        k_c = min(self.config.k_blend, rho.shape[1])
-        rho_top, pos = torch.topk(rho, k_c, dim=1)
-        kid = cand.gather(1, pos)
+    def _blend(self, face_ids, bary, cand, return_aux, d2=None):
+        if cand is not None and self._grad_needed() and not bary.requires_grad:
+            kid, rho_top = self._top_responses(face_ids, bary, cand, d2)
+        else:
+            if cand is not None and d2 is not None and not self._grad_needed():
+                self._ensure_cache()
+                r = _pair_ratio(
+                    face_ids, bary, cand, *self._terms, self.field, self.config.sigma_b, d2=d2
+                )
+                rho = soft_step(r, self.threshold[cand], self.sharpness[cand])
+            else:
+                rho, cand = self.responses(face_ids, bary, cand)
+            k_c = min(self.config.k_blend, rho.shape[1])
+            rho_top, pos = torch.topk(rho, k_c, dim=1)
+            kid = cand.gather(1, pos)
         weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
         denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
         out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
@@ -458,11 +472,54 @@ class HeatKernelModel(nn.Module):
             return out, {"indices": kid, "rho": rho_top}
         return out
 
+    def _grad_needed(self) -> bool:
+        return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
+
+    def _top_responses(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor, d2: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable ``rho`` of each point's ``K_c`` strongest candidates: (kid, rho).
+
+        Only the top ``K_c`` responses reach the albedo, and ``topk`` is piecewise constant,
+        so the gradient of the blend is exactly that of those ``P K_c`` pairs. The ``K_s``
+        candidates are ranked without a graph (:func:`_rank_pairs`, which also keeps what the
+        selected pairs' backward needs: ``P K_c (K + 4)`` numbers), and only the winners get
+        a graph (:class:`_PairResponse`). Per-kernel terms are computed once, with a graph,
+        for the batch's unique candidates; their backward touches only rows with gradient.
+        """
+        uniq, local = torch.unique(cand, return_inverse=True)
+        terms = self._spectral_terms(uniq)
+        coef, norm, nodes, weights, emb_c = terms
+        k_c = min(self.config.k_blend, cand.shape[1])
+        detached = [t.detach() for t in terms]
+        parts = [
+            _rank_pairs(
+                face_ids[sl],
+                bary[sl],
+                local[sl],
+                d2[sl],
+                self.threshold.detach()[uniq],
+                self.sharpness.detach()[uniq],
+                *detached,
+                self.field,
+                self.config.sigma_b,
+                k_c,
+            )
+            for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
+        ]
+        top, dots, blend = (torch.cat(x) for x in zip(*parts, strict=True))
+        h = _PairResponse.apply(coef[top], weights[top], dots, blend)
+        emb_y = self.field.embedding_at(face_ids, bary)
+        d2_top = ((emb_y[:, None, :] - emb_c[top]) ** 2).sum(dim=2)
+        r = h * torch.exp(-d2_top / (2.0 * self.config.sigma_b**2)) / norm[top]
+        kid = uniq[top]
+        return kid, soft_step(r, self.threshold[kid], self.sharpness[kid])
+
     def _ratio(
         self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor
     ) -> torch.Tensor:
         """``r_j(y) = h_j(y) w_j(y) / h_j(c_j)`` for candidates (P, C)."""
-        if torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params()):
+        if self._grad_needed():
             uniq, local = torch.unique(cand, return_inverse=True)
             terms = self._spectral_terms(uniq)
             if face_ids.shape[0] > GRAD_CHUNK_POINTS:
@@ -491,21 +548,105 @@ def _pair_ratio(
     emb_c: torch.Tensor,
     field: SpectralField,
     sigma_b: float,
+    d2: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """``r`` for points and their candidates ``local`` (rows of the per-kernel terms)."""
+    """``r`` for points and their candidates ``local`` (rows of the per-kernel terms).
+
+    ``d2``: squared embedding distances (P, C) when the caller has them (the exact candidate
+    cut computes them anyway); they must not need a gradient.
+    """
     h = None
     if not torch.is_grad_enabled() and PAIR_PATH != "bmm":
         h = _h_by_vertex_pairs(face_ids, bary, local, coef, nodes, weights, field)
     if h is None:
         h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field)
-    emb_y = field.embedding_at(face_ids, bary)
-    d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
-    return h * torch.exp(-d2 / (2.0 * sigma_b**2)) / norm[local]
+    if d2 is None:
+        emb_y = field.embedding_at(face_ids, bary)
+        d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
+    return h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
 
 
-def _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field) -> torch.Tensor:
-    """``h_j(y)`` (P, C): ``coef_j . Phi_y[g]`` for every node g, then j's own 4 nodes."""
+@torch.no_grad()
+def _rank_pairs(
+    face_ids,
+    bary,
+    local,
+    d2,
+    threshold,
+    sharpness,
+    coef,
+    norm,
+    nodes,
+    weights,
+    emb_c,
+    field,
+    sigma_b,
+    k_c,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rank all candidates without a graph; keep what the top ``k_c`` pairs' backward needs.
+
+    Returns ``top`` (P, k_c) rows of the per-kernel terms, ``dots`` (P, k_c, 4) =
+    ``coef_j . Phi_y[n_jc]`` and ``blend`` (P, k_c, K) = ``sum_c w_jc Phi_y[n_jc]``
+    (``dh/dw`` and ``dh/dcoef`` of :class:`_PairResponse`).
+    """
     phi_y = field.node_values(face_ids, bary)  # (P, G, K)
+    h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field, phi_y)
+    r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    rho = soft_step(r, threshold[local], sharpness[local])
+    top = local.gather(1, torch.topk(rho, k_c, dim=1).indices)  # (P, k_c)
+    p, g, k = phi_y.shape
+    rows = torch.arange(p, device=phi_y.device)[:, None, None] * g + nodes[top]  # (P, k_c, 4)
+    phi4 = phi_y.view(p * g, k).index_select(0, rows.reshape(-1)).view(p, k_c, -1, k)
+    dots = torch.matmul(phi4, coef[top][..., None]).squeeze(-1)  # (P, k_c, 4)
+    blend = torch.matmul(weights[top][:, :, None, :], phi4).squeeze(2)  # (P, k_c, K)
+    return top, dots, blend
+
+
+class _PairResponse(torch.autograd.Function):
+    """``h = sum_c w_c dots_c`` for selected pairs, with the analytic backward.
+
+    ``dots_c = coef . Phi_y[n_c]`` and ``blend = sum_c w_c Phi_y[n_c]`` were computed at the
+    same parameter values by :func:`_rank_pairs`; ``dh/dcoef = blend`` and ``dh/dw_c =
+    dots_c``. The point side ``Phi_y`` is a constant here (the caller routes batches whose
+    query barycentrics need a gradient through plain autograd instead).
+    """
+
+    @staticmethod
+    def forward(ctx, coef, weights, dots, blend):  # type: ignore[override]
+        ctx.save_for_backward(dots, blend)
+        return (weights * dots).sum(dim=2)
+
+    @staticmethod
+    def backward(ctx, grad_h):  # type: ignore[override]
+        dots, blend = ctx.saved_tensors
+        g = grad_h[..., None]
+        return g * blend, g * dots, None, None
+
+
+def _exact_cut(
+    emb_y: torch.Tensor, emb_c: torch.Tensor, cand: torch.Tensor, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest of a slightly larger candidate list, by exact float64 distances.
+
+    faiss ranks with float32 ``|q|^2 + |c|^2 - 2 q.c`` computed differently for small and
+    large query batches, so the ``K_s``-th neighbour (and hence a colour) could depend on the
+    rest of the batch. Re-ranking ``K_s + margin`` candidates by per-pair float64 distances,
+    ties broken by kernel index, makes the cut a function of the point alone (unless faiss's
+    round-off exceeds the margin's distance gap). Returns ``(cand (P, k), d2 (P, k))``.
+    """
+    cand, _ = torch.sort(cand, dim=1)  # ties then resolve by kernel index (stable sort)
+    diff = emb_c.to(torch.float64)[cand] - emb_y.to(torch.float64)[:, None, :]
+    d2 = (diff * diff).sum(dim=2)
+    d2, order = torch.sort(d2, dim=1, stable=True)
+    return cand.gather(1, order[:, :k]), d2[:, :k]
+
+
+def _h_by_node_matmul(
+    face_ids, bary, local, coef, nodes, weights, field, phi_y=None
+) -> torch.Tensor:
+    """``h_j(y)`` (P, C): ``coef_j . Phi_y[g]`` for every node g, then j's own 4 nodes."""
+    if phi_y is None:
+        phi_y = field.node_values(face_ids, bary)  # (P, G, K)
     picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
     dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
     return (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)

@@ -137,3 +137,21 @@ def test_cpu_field_shares_a_memory_mapped_grid(spectra, tmp_path):
     args = (torch.as_tensor(face_ids), torch.as_tensor(bary), th, ss)
     ref = SpectralField(spectra, device="cpu", dtype=torch.float64).eigenfunctions(*args)
     np.testing.assert_array_equal(field.eigenfunctions(*args).numpy(), ref.numpy())
+
+
+def test_saved_blends_and_regathering_backward_agree(spectra, field64, monkeypatch):
+    """Backward from the kept 7 blended rows equals backward that regathers (memory cap)."""
+    rng = np.random.default_rng(8)
+    face_ids = torch.as_tensor(rng.integers(0, spectra.faces.shape[0], 5))
+    grads = []
+    for cap in (interpolation.SAVE_BYTES, 0):
+        monkeypatch.setattr(interpolation, "SAVE_BYTES", cap)
+        theta = torch.tensor([0.3, 1.2, 2.0, 2.9, 0.5], dtype=torch.float64, requires_grad=True)
+        s = torch.tensor([0.8, 1.5, 2.1, 1.0, 1.7], dtype=torch.float64, requires_grad=True)
+        bary = torch.as_tensor(rng.dirichlet(np.ones(3), 5) if not grads else grads[0][3])
+        bary = bary.clone().requires_grad_(True)
+        out = field64.eigenfunctions(face_ids, bary, theta, s)
+        (out * torch.linspace(-1, 1, out.shape[1], dtype=torch.float64)).sum().backward()
+        grads.append((theta.grad, s.grad, bary.grad, bary.detach(), out.detach()))
+    for a, b in zip(grads[0][:3] + grads[0][4:], grads[1][:3] + grads[1][4:], strict=True):
+        np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-12, atol=1e-14)

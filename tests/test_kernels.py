@@ -8,6 +8,7 @@ import torch
 from scipy.interpolate import RegularGridInterpolator
 from scipy.special import expit
 
+from hktex_engine import kernels as kernels_mod
 from hktex_engine.config import KernelConfig
 from hktex_engine.interpolation import SpectralField
 from hktex_engine.kernels import HeatKernelModel, KernelSet, soft_step
@@ -375,3 +376,56 @@ def test_vertex_pair_path_equals_node_matmul(spectra, field64, monkeypatch, dens
             field64,
         )
     assert (got is not None) == dense
+
+
+def test_top_pair_gradients_equal_full_autograd(spectra, field64):
+    """The fast training path (rank without a graph, differentiate only the top K_c pairs)
+    gives the gradients of plain autograd through all K_s responses and ``topk``."""
+    kp = make_params(spectra, 30, seed=31)
+    face_ids, bary = random_points(spectra, 25, seed=32)
+    fast = make_model(field64, kp)
+    out, aux = fast.albedo(face_ids, bary, return_aux=True)
+    (out**2).sum().backward()
+
+    slow = make_model(field64, kp)
+    with torch.no_grad():
+        _, aux_ref = slow.albedo(face_ids, bary, return_aux=True)
+        emb = field64.embedding_at(torch.as_tensor(face_ids), torch.as_tensor(bary))
+        cand = slow._knn.search(emb, CONFIG.k_search + 8)
+        cand, _ = kernels_mod._exact_cut(emb, slow._centre_emb, cand, CONFIG.k_search)
+    rho, cand = slow.responses(face_ids, bary, cand)  # every candidate differentiable
+    rho_top, pos = torch.topk(rho, CONFIG.k_blend, dim=1)
+    kid = cand.gather(1, pos)
+    mix = torch.einsum("pc,pcd->pd", rho_top, slow.colors[kid])
+    mix = mix / torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
+    ref = torch.clamp(slow.base_color[None, :] + mix, 0.0, 1.0)
+    (ref**2).sum().backward()
+    np.testing.assert_allclose(out.detach().numpy(), ref.detach().numpy(), atol=1e-12)
+    assert torch.equal(aux["indices"], kid)
+    np.testing.assert_allclose(aux["rho"].detach().numpy(), rho_top.detach().numpy(), atol=1e-12)
+    for name in ("theta", "s", "threshold", "sharpness", "colors", "bary", "base_color"):
+        g_fast, g_ref = getattr(fast, name).grad, getattr(slow, name).grad
+        assert g_ref.abs().max() > 0, name
+        np.testing.assert_allclose(g_fast.numpy(), g_ref.numpy(), rtol=1e-9, atol=1e-12)
+
+
+def test_candidates_do_not_depend_on_the_batch(spectra):
+    """A point's colour is the same alone and inside a large batch (exact float64 cut)."""
+    field32 = SpectralField(spectra, device="cpu", dtype=torch.float32)
+    kp = make_params(spectra, 60, seed=33)
+    config = KernelConfig(0.01, 0.3, k_search=10, k_blend=4)
+    model = make_model(field32, kp, config)
+    face_ids, bary = random_points(spectra, 300, seed=34)
+    with torch.no_grad():
+        _, aux = model.albedo(face_ids, bary, return_aux=True)
+        for p in range(0, 300, 37):
+            _, one = model.albedo(face_ids[p : p + 1], bary[p : p + 1], return_aux=True)
+            assert torch.equal(one["indices"][0], aux["indices"][p])
+
+
+def test_exact_cut_orders_by_distance_then_index():
+    emb_c = torch.tensor([[0.0], [1.0], [-1.0], [2.0], [1.0]])
+    cand = torch.tensor([[3, 4, 0, 1, 2]])
+    got, d2 = kernels_mod._exact_cut(torch.zeros(1, 1), emb_c, cand, 4)
+    assert got.tolist() == [[0, 1, 2, 4]] and d2.dtype == torch.float64
+    assert d2.tolist() == [[0.0, 1.0, 1.0, 1.0]]
