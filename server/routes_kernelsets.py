@@ -92,8 +92,11 @@ def get_kernelset_file(
 ):
     with svc.db.read() as s:
         row = own(s, KernelSetRow, kernelset_id, owner, "kernel set")
+    path = svc.store.abs(row.path)
+    if not path.is_file():  # deleted between the lookup and now: not a server error
+        raise HTTPException(404, detail=f"kernel set {kernelset_id!r} has no file any more")
     return FileResponse(
-        svc.store.abs(row.path),
+        path,
         media_type="application/octet-stream",
         filename=f"{kernelset_id}.hkt",
     )

@@ -501,6 +501,11 @@ def _store_views(svc: ServiceState, owner: str, content_key: str, archive: Path)
     except (HKTexError, ValueError) as exc:
         svc.store.delete(svc.store.rel(dest))
         raise HTTPException(422, detail=f"{type(exc).__name__}: {_one_line(exc)}") from None
+    except Exception as exc:  # an image decoder failing on hostile bytes is still bad input
+        svc.store.delete(svc.store.rel(dest))
+        raise HTTPException(
+            422, detail=f"unreadable views dataset: {type(exc).__name__}: {_one_line(exc)}"
+        ) from None
     rel = svc.store.publish_dir(dest, "views", content_key)
     if root != dest:
         rel = str(Path(rel) / root.relative_to(dest))

@@ -13,6 +13,7 @@ import os
 import shutil
 import stat
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 
@@ -198,7 +199,8 @@ def extract_zip(archive: Path, dest: Path, max_bytes: int, max_members: int) -> 
     """
     try:
         zf = zipfile.ZipFile(archive)
-    except (zipfile.BadZipFile, OSError) as exc:
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        shutil.rmtree(dest, ignore_errors=True)
         raise ArchiveError(f"not a zip archive: {exc}") from None
     try:
         with zf:
@@ -227,7 +229,15 @@ def extract_zip(archive: Path, dest: Path, max_bytes: int, max_members: int) -> 
     except ArchiveError:
         shutil.rmtree(dest, ignore_errors=True)
         raise
-    except (zipfile.BadZipFile, OSError, RuntimeError, EOFError, NotImplementedError) as exc:
+    except (  # zlib.error: a corrupt deflate stream (it derives from none of the others)
+        zipfile.BadZipFile,
+        zlib.error,
+        OSError,
+        RuntimeError,
+        EOFError,
+        NotImplementedError,
+        ValueError,
+    ) as exc:
         shutil.rmtree(dest, ignore_errors=True)
         raise ArchiveError(f"corrupt zip archive: {exc}") from None
 

@@ -310,3 +310,25 @@ def test_mesh_deletion_rule(server, patch_obj) -> None:
             assert s.get(SpectraRow, spectra.id) is None
         assert not spectra_dir.exists()
         assert not list((data / "meshes").rglob("*.obj")), "no row refers to the mesh blob"
+
+
+def test_corrupt_deflate_stream_is_422_and_leaves_no_temp_dir(server) -> None:
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("views.json", b'{"a": ' + b"1" * 5000 + b"}")
+    data = bytearray(buf.getvalue())
+    start = 30 + len("views.json")  # local header, then the deflate stream: garble it
+    for i in range(start + 2, start + 30):
+        data[i] ^= 0x5A
+    tmp = server.settings.data_dir / "tmp"
+    before = set(tmp.iterdir())
+    with _client(server, ALICE) as c:
+        r = c.post("/v1/views", files={"archive": ("v.zip", bytes(data), "application/zip")})
+        assert r.status_code == 422, r.text
+        r = c.post("/v1/views", files={"archive": ("v.zip", b"not a zip", "application/zip")})
+        assert r.status_code == 422, r.text
+        assert c.get("/v1/health").status_code == 200
+    assert set(tmp.iterdir()) <= before, "a temp extraction directory was left behind"
