@@ -1,12 +1,12 @@
 """Routes: meshes (upload, list, read, delete), their spectra, and view datasets.
 
-A mesh upload is validated in the API process (the user learns at once why a mesh is
-refused), on a worker thread with a timeout so the event loop keeps serving.
+A mesh upload is validated while the uploader waits (the user learns at once why a mesh is
+refused), in a child process with a hard timeout (``validation.py``) so the event loop keeps
+serving and a parser stuck on hostile bytes is killed, not left running.
 """
 
 from __future__ import annotations
 
-import asyncio
 import hashlib
 import zipfile
 from pathlib import Path
@@ -131,29 +131,24 @@ def _digest(path: Path) -> str:
 
 
 async def _validate(svc: ServiceState, path: Path, texture: Path | None, suffix: str):
-    from hktex_engine.errors import HKTexError
-    from hktex_engine.mesh import load_mesh
-
-    def load():
-        return load_mesh(
-            path,
-            texture=texture,
-            max_vertices=svc.settings.max_vertices,
-            file_type=suffix.lstrip(".") or None,
-        )
+    """The engine's validation in a killable child process (``validation.py``): 422 with the
+    reason, or when it overruns ``validate_timeout_seconds``."""
+    from hktex_server.validation import InvalidMesh, ValidationTimeout, validate_mesh
 
     try:
-        return await asyncio.wait_for(
-            run_in_threadpool(load), svc.settings.validate_timeout_seconds
+        return await run_in_threadpool(
+            validate_mesh,
+            path,
+            texture,
+            svc.settings.max_vertices,
+            suffix.lstrip(".") or None,
+            svc.settings.validate_timeout_seconds,
         )
-    except TimeoutError:
-        raise HTTPException(422, detail="mesh validation took too long") from None
-    except (HKTexError, ValueError) as exc:
-        raise HTTPException(422, detail=f"{type(exc).__name__}: {_one_line(exc)}") from None
-    except Exception as exc:  # a parser crashing on hostile bytes is still bad input
-        raise HTTPException(
-            422, detail=f"unreadable mesh: {type(exc).__name__}: {_one_line(exc)}"
-        ) from None
+    except ValidationTimeout as exc:
+        raise HTTPException(422, detail=str(exc)) from None
+    except InvalidMesh as exc:
+        detail = str(exc) if exc.input_error else f"unreadable mesh: {exc}"
+        raise HTTPException(422, detail=detail) from None
 
 
 def _one_line(exc: BaseException) -> str:
@@ -189,7 +184,7 @@ def _store_mesh(
             "manifold": True,
             "connected": True,
             "vertex_limit": svc.settings.max_vertices,
-            "has_uvs": mesh.corner_uvs is not None,
+            "has_uvs": mesh.has_uvs,
             "scale": float(mesh.scale),
             "format": suffix.lstrip(".") or "sniffed",
         },

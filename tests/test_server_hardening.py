@@ -332,3 +332,40 @@ def test_corrupt_deflate_stream_is_422_and_leaves_no_temp_dir(server) -> None:
         assert r.status_code == 422, r.text
         assert c.get("/v1/health").status_code == 200
     assert set(tmp.iterdir()) <= before, "a temp extraction directory was left behind"
+
+
+# ---------------------------------------------------------------- 6. validation is killable
+
+
+def test_validation_runs_in_a_killable_process(patch_obj, tmp_path) -> None:
+    import multiprocessing
+
+    from hktex_server.validation import (
+        InvalidMesh,
+        ValidationTimeout,
+        validate_mesh,
+    )
+
+    from hktex_engine.mesh import load_mesh
+
+    summary = validate_mesh(patch_obj, None, 5000, "obj", 120)
+    mesh = load_mesh(patch_obj)
+    assert summary.content_hash == mesh.content_hash
+    assert (summary.n_vertices, summary.n_faces) == (mesh.n_vertices, mesh.n_faces)
+    with pytest.raises(InvalidMesh) as err:
+        validate_mesh(patch_obj, None, 3, "obj", 120)
+    assert err.value.input_error and "TooManyVertices" in str(err.value)
+    garbage = tmp_path / "garbage.ply"
+    garbage.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99999999\n")
+    with pytest.raises(InvalidMesh):
+        validate_mesh(garbage, None, 5000, "ply", 120)
+    with pytest.raises(ValidationTimeout):
+        validate_mesh(patch_obj, None, 5000, "obj", 0.0)
+    assert not multiprocessing.active_children(), "a validator outlived its timeout"
+
+
+def test_upload_validation_timeout_is_422(tmp_path, patch_obj) -> None:
+    settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'v.db'}", validate_timeout_seconds=0)
+    with LiveServer(settings) as live, httpx.Client(base_url=live.url, timeout=30) as c:
+        r = c.post("/v1/meshes", files={"mesh": ("p.obj", patch_obj.read_bytes(), "text/plain")})
+        assert r.status_code == 422 and "longer than" in r.json()["detail"], r.text
