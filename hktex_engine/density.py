@@ -23,9 +23,10 @@ from hktex_engine.optimise import (
     KERNEL_ATTRIBUTES,
     KernelOptimiser,
     Tracer,
+    axis_pair,
     face_unit_normals,
-    long_axis,
-    trace_on_surface,
+    theta_in_faces,
+    trace_transporting,
 )
 
 
@@ -279,21 +280,36 @@ class DensityController:
 
     @torch.no_grad()
     def new_rows(self, model, clone: torch.Tensor, split: torch.Tensor) -> dict:
-        """Rows for clones (exact copies) and split children (two per parent, traced apart)."""
+        """Rows for clones (exact copies) and split children (two per parent, traced apart).
+
+        A child that lands in another face gets its parent's long axis parallel-transported
+        along its path and theta re-expressed against that face's u_ref
+        (``optimise.theta_in_faces``), so both children keep the parent's 3-D orientation.
+        Children start with zero optimiser state, so no Adam row needs adjusting.
+        """
         rows = {name: getattr(model, name).detach() for name in KERNEL_ATTRIBUTES}
         out = {name: t[clone] for name, t in rows.items()}
         if split.numel() == 0:
             return out
         eps = rows["threshold"][split]
         f, b = rows["face_ids"][split], rows["bary"][split]
-        axis = long_axis(self.face_frames, self.face_normals, f, rows["theta"][split])
-        offset = ((1.0 - eps) * self.rules.split_offset).to(axis.dtype)[:, None] * axis
-        ends = trace_on_surface(
-            self.tracer, torch.cat([f, f]), torch.cat([b, b]), torch.cat([offset, -offset])
+        theta = rows["theta"][split]
+        axes = axis_pair(self.face_frames, self.face_normals, f, theta)  # (S, 2, 3) float64
+        offset = ((1.0 - eps) * self.rules.split_offset).to(axes.dtype)[:, None] * axes[:, 0]
+        f2, axes2, theta2 = torch.cat([f, f]), torch.cat([axes, axes]), torch.cat([theta, theta])
+        end_f, end_b, _, end_axes = trace_transporting(
+            self.tracer, f2, torch.cat([b, b]), torch.cat([offset, -offset]), axes2
         )
         children = {name: torch.cat([t[split], t[split]]) for name, t in rows.items()}
-        children["face_ids"] = ends[0]
-        children["bary"] = ends[1].to(rows["bary"].dtype)
+        children["face_ids"] = end_f
+        children["bary"] = end_b.to(rows["bary"].dtype)
+        moved = torch.nonzero(end_f != f2).squeeze(1)
+        if moved.numel():
+            new_theta, _ = theta_in_faces(
+                self.face_frames, self.face_normals, end_f[moved], end_axes[moved], theta2[moved]
+            )
+            children["theta"] = children["theta"].clone()
+            children["theta"][moved] = new_theta.to(children["theta"].dtype)
         shrunk = 1.0 - (1.0 - eps) / self.rules.split_shrink
         children["threshold"] = torch.cat([shrunk, shrunk])
         return {name: torch.cat([out[name], children[name]]) for name in out}

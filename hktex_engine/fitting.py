@@ -159,7 +159,9 @@ def _run_fit(
 ) -> LoopResult:
     rng = rng if rng is not None else np.random.default_rng(params.seed)
     total = int(params.steps)
-    opt = KernelOptimiser(model, params, tracer, vertices, faces, momentum=momentum)
+    opt = KernelOptimiser(
+        model, params, tracer, vertices, faces, momentum=momentum, face_frames=face_frames
+    )
     density = DensityController(params, total, vertices, faces, face_frames, tracer)
     ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
     fp = {"format": CHECKPOINT_FORMAT, **(fingerprint or {})}

@@ -7,6 +7,11 @@ Two kinds of parameters live on two kinds of spaces:
 * centres live on the surface: Riemannian SGD whose step is an exponential-map trace
   (``geodesics.SurfaceTracer.trace``), with momentum parallel-transported along the same path.
 
+A kernel's angle ``theta`` is measured from its centre face's ``u_ref`` (ALGORITHM.md 1), so
+when a step carries a centre into another face the number alone would describe another axis
+there. The long axis is therefore parallel-transported along the step's path and ``theta``
+re-expressed against the end face's ``u_ref`` (:func:`theta_in_faces`).
+
 Both keep their state **per kernel row** so density control can clone, split and prune kernels
 and the state follows the survivors while newcomers start from zero (:meth:`resize`). That is
 why Adam is written here rather than taken from ``torch.optim``: torch's Adam keeps one step
@@ -20,6 +25,7 @@ The model is ``kernels.HeatKernelModel`` (or anything with its attribute names, 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -51,7 +57,12 @@ KERNEL_ATTRIBUTES: tuple[str, ...] = (
 
 
 class Tracer(Protocol):
-    """What the optimiser needs from ``geodesics.SurfaceTracer``."""
+    """What the optimiser needs from ``geodesics.SurfaceTracer``.
+
+    ``trace_full(face_ids, bary, vectors, transport=T)`` (an object with ``face_ids``,
+    ``bary``, ``vectors`` and ``transported``) is needed as well wherever kernel axes are
+    carried along (:class:`KernelOptimiser` given ``face_frames``, density splits).
+    """
 
     def trace(self, face_ids: Any, bary: Any, vectors: Any) -> tuple[Any, Any, Any]: ...
 
@@ -96,10 +107,79 @@ def long_axis(
     return torch.cos(theta)[:, None] * u + torch.sin(theta)[:, None] * w
 
 
+#: angles this close (radians) outside [0, pi] are clamped, not folded (see theta_in_faces)
+_FOLD_SLACK = 1e-6
+
+
+def axis_pair(
+    face_frames: torch.Tensor,
+    face_normals: torch.Tensor,
+    face_ids: torch.Tensor,
+    theta: torch.Tensor,
+) -> torch.Tensor:
+    """(N, 2, 3): the long axis u_theta and w_theta = n x u_theta, in float64.
+
+    Both are transported so that the end face can tell whether the path's transport kept the
+    sense of rotation about its normal (it does not across faces of opposite winding), which
+    decides the sign of theta's Adam momentum there (:meth:`KernelOptimiser.step`).
+    """
+    n = face_normals[face_ids].to(torch.float64)
+    u = long_axis(
+        face_frames.to(torch.float64),
+        face_normals.to(torch.float64),
+        face_ids,
+        theta.detach().to(torch.float64),
+    )
+    return torch.stack([u, torch.linalg.cross(n, u, dim=-1)], dim=1)
+
+
+def theta_in_faces(
+    face_frames: torch.Tensor,
+    face_normals: torch.Tensor,
+    face_ids: torch.Tensor,
+    axes: torch.Tensor,
+    theta_ref: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Angles of tangent axes against their faces' u_ref; (theta in [0, pi], reversed mask).
+
+    ``axes`` is (N, 2, 3): an axis and the vector a quarter turn from it (:func:`axis_pair`),
+    both in the plane of ``face_ids``. An axis has no sign, so its angle is defined modulo
+    pi; of all representatives we take the one nearest ``theta_ref`` (the kernel's angle
+    before the move), then fold it into [0, pi]. So an axis whose frame did not change keeps
+    its angle, at 0 and at pi too (the model clamps theta into [0, pi], it never wraps),
+    instead of jumping between the ends on rounding.
+
+    ``reversed`` is True where the second vector is on the clockwise side of the axis about
+    the face normal: the transport turned positive rotations into negative ones (faces wound
+    the other way), so d/dtheta now points the other way.
+    """
+    dt = torch.float64
+    n = face_normals[face_ids].to(dt)
+    u = face_frames[face_ids].to(dt)
+    u = u - (u * n).sum(-1, keepdim=True) * n  # frames are in-plane; guard float32 input
+    u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    w = torch.linalg.cross(n, u, dim=-1)
+    a, b = axes[:, 0].to(dt), axes[:, 1].to(dt)
+    phi = torch.atan2((a * w).sum(-1), (a * u).sum(-1))
+    ref = theta_ref.detach().to(dt)
+    half = math.pi / 2
+    t = ref + torch.remainder(phi - ref + half, math.pi) - half  # nearest ref, = phi mod pi
+    # fold into [0, pi]; within _FOLD_SLACK of an end clamp instead: rounding must not send
+    # an axis at 0 to pi (the same line, but the far end of the model's clamped range)
+    t = torch.where(t < -_FOLD_SLACK, t + math.pi, t)
+    t = torch.where(t > math.pi + _FOLD_SLACK, t - math.pi, t).clamp(0.0, math.pi)
+    reversed_ = (torch.linalg.cross(a, b, dim=-1) * n).sum(-1) < 0
+    return t.to(theta_ref.dtype), reversed_
+
+
 def face_unit_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     tri = vertices[faces]
     n = torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)
     return n / n.norm(dim=-1, keepdim=True).clamp_min(1e-30)
+
+
+def _back(x: Any, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    return torch.as_tensor(x if torch.is_tensor(x) else np.asarray(x)).to(device, dtype)
 
 
 def trace_on_surface(
@@ -116,11 +196,41 @@ def trace_on_surface(
         bary.detach().to(torch.float64),
         vectors.detach().to(torch.float64),
     )
+    return (
+        _back(f_end, device, torch.long),
+        _back(b_end, device, bary.dtype),
+        _back(v_end, device, vectors.dtype),
+    )
 
-    def back(x, dtype: torch.dtype) -> torch.Tensor:
-        return torch.as_tensor(x if torch.is_tensor(x) else np.asarray(x)).to(device, dtype)
 
-    return back(f_end, torch.long), back(b_end, bary.dtype), back(v_end, vectors.dtype)
+def trace_transporting(
+    tracer: Tracer,
+    face_ids: torch.Tensor,
+    bary: torch.Tensor,
+    vectors: torch.Tensor,
+    transport: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`trace_on_surface` that also parallel-transports ``transport`` (N, K, 3).
+
+    Returns (end faces, end barycentrics, transported step vectors, transported extras in
+    float64, (N, K, 3)).
+    """
+    if not hasattr(tracer, "trace_full"):
+        raise TypeError("carrying kernel axes needs a tracer with trace_full(..., transport=)")
+    device = bary.device
+    res = tracer.trace_full(
+        face_ids.detach(),
+        bary.detach().to(torch.float64),
+        vectors.detach().to(torch.float64),
+        transport=transport.detach().to(torch.float64),
+    )
+    extra = _back(res.transported, device, torch.float64).reshape(transport.shape)
+    return (
+        _back(res.face_ids, device, torch.long),
+        _back(res.bary, device, bary.dtype),
+        _back(res.vectors, device, vectors.dtype),
+        extra,
+    )
 
 
 @dataclass
@@ -209,24 +319,48 @@ class RiemannianSGD:
         carried to the end face by the tracer's parallel transport of the step vector itself:
         transport is linear, so transporting -lr*m and dividing by -lr transports m.
         """
+        f, b, _ = self.step_transporting(face_ids, bary, grad, None, scale)
+        return f, b
+
+    @torch.no_grad()
+    def step_transporting(
+        self,
+        face_ids: torch.Tensor,
+        bary: torch.Tensor,
+        grad: torch.Tensor,
+        transport: torch.Tensor | None,
+        scale: float = 1.0,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """:meth:`step`, also parallel-transporting ``transport`` (N, K, 3) along each path.
+
+        Returns (face_ids, barycentrics, transported (float64; rows of centres that did not
+        move are the input's), or None without ``transport``).
+        """
         if self.buf is None or self.buf.shape != grad.shape:
             self.buf = torch.zeros_like(grad)
         m = self.buf.mul_(self.momentum).add_(grad) if self.momentum else grad.clone()
         lr = self.lr * scale
         step = -lr * m
         moving = step.norm(dim=-1) > 0
+        extra = None if transport is None else transport.detach().to(torch.float64).clone()
         if lr == 0.0 or not bool(moving.any()):
             self.buf = m
-            return face_ids, bary
+            return face_ids, bary, extra
         new_f, new_b = face_ids.clone(), bary.clone()
-        f_end, b_end, v_end = trace_on_surface(
-            self.tracer, face_ids[moving], bary[moving], step[moving]
-        )
+        if extra is None:
+            f_end, b_end, v_end = trace_on_surface(
+                self.tracer, face_ids[moving], bary[moving], step[moving]
+            )
+        else:
+            f_end, b_end, v_end, x_end = trace_transporting(
+                self.tracer, face_ids[moving], bary[moving], step[moving], extra[moving]
+            )
+            extra[moving] = x_end
         new_f[moving], new_b[moving] = f_end, b_end
         m = m.clone()
         m[moving] = v_end / (-lr)
         self.buf = m
-        return new_f, new_b
+        return new_f, new_b, extra
 
     def resize(self, keep: torch.Tensor, n_new: int) -> None:
         if self.buf is not None:
@@ -241,7 +375,17 @@ def model_tensors(model: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 
 class KernelOptimiser:
-    """Adam on attributes + Riemannian SGD on centres for one model; state resizable by rows."""
+    """Adam on attributes + Riemannian SGD on centres for one model; state resizable by rows.
+
+    With ``face_frames`` (the spectra's per-face u_ref, on the model's device) a centre that
+    changes face keeps its long axis in 3-D: the axis is parallel-transported along the step's
+    path and theta re-expressed in the end face (:func:`theta_in_faces`), in place, so Adam's
+    rows stay attached. Theta's Adam moments are kept: a change of reference direction shifts
+    theta by a constant (and a fold by pi), which leaves d/dtheta, i.e. the rotation of the
+    axis about the normal, unchanged; only where the transport reverses the sense of rotation
+    (faces wound the other way) the first moment's row changes sign. Without ``face_frames``
+    theta stays a number (the behaviour for callers that have no frames).
+    """
 
     def __init__(
         self,
@@ -251,11 +395,18 @@ class KernelOptimiser:
         vertices: torch.Tensor,
         faces: torch.Tensor,
         momentum: float | None = None,
+        face_frames: torch.Tensor | None = None,
     ) -> None:
         self.model = model
         self.params = params
         self.vertices = vertices
         self.faces = faces
+        self.face_frames = face_frames
+        self.face_normals = None
+        if face_frames is not None:
+            if not hasattr(tracer, "trace_full"):
+                raise TypeError("face_frames need a tracer with trace_full(..., transport=)")
+            self.face_normals = face_unit_normals(vertices.to(torch.float64), faces.to(torch.long))
         lrs = {name: getattr(params, field) for name, field in ATTRIBUTE_LRS.items()}
         self.adam = RowAdam(lrs)
         mom = params.center_momentum if momentum is None else momentum
@@ -275,9 +426,37 @@ class KernelOptimiser:
         self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad
         if gb is not None:
-            g = tangent_gradient(self.vertices, self.faces, self.model.face_ids, gb)
-            f, b = self.centres.step(self.model.face_ids, self.model.bary, g, scale)
+            f0 = self.model.face_ids
+            g = tangent_gradient(self.vertices, self.faces, f0, gb)
+            if self.face_frames is None:
+                f, b = self.centres.step(f0, self.model.bary, g, scale)
+            else:
+                axes = axis_pair(self.face_frames, self.face_normals, f0, self.model.theta)
+                f, b, moved = self.centres.step_transporting(f0, self.model.bary, g, axes, scale)
+                self._reorient(f0, f, moved)
             self.model.set_centres(f, b)
+
+    @torch.no_grad()
+    def _reorient(self, f0: torch.Tensor, f1: torch.Tensor, axes: torch.Tensor) -> None:
+        """Re-express theta of centres that changed face; keep Adam's rows meaningful.
+
+        Only rows whose face changed are touched: inside one face transport is the identity,
+        so theta there is already right and stays bit-identical. (A path that leaves its face
+        and comes back within one step could pick up holonomy around a vertex; steps are far
+        shorter than a face, so this is ignored.)
+        """
+        changed = torch.nonzero(f1 != f0).squeeze(1)
+        if changed.numel() == 0:
+            return
+        theta = self.model.theta
+        new, reversed_ = theta_in_faces(
+            self.face_frames, self.face_normals, f1[changed], axes[changed], theta[changed]
+        )
+        theta.index_copy_(0, changed, new.to(theta.dtype))
+        st = self.adam.state.get("theta")
+        if st is not None and bool(reversed_.any()):
+            flip = changed[reversed_]
+            st.exp_avg.index_copy_(0, flip, -st.exp_avg[flip])
 
     def resize(self, keep: torch.Tensor, n_new: int) -> None:
         self.adam.resize(keep, n_new)

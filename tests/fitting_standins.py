@@ -7,6 +7,8 @@ the expected answers are known in closed form.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 
@@ -67,6 +69,12 @@ class FlatTracer:
         end[:, :2] = np.clip(end[:, :2], self.lo, self.hi)
         fid, b = locate_flat(self.v, self.f, end)
         return fid, b, vectors.copy()
+
+    def trace_full(self, face_ids, bary, vectors, transport=None):
+        """``trace`` plus the extra vectors, transported by the identity (a plane)."""
+        fid, b, vec = self.trace(face_ids, bary, vectors)
+        extra = None if transport is None else np.asarray(transport).reshape(len(fid), -1, 3)
+        return SimpleNamespace(face_ids=fid, bary=b, vectors=vec, transported=extra)
 
 
 class ToyModel(torch.nn.Module):
