@@ -51,7 +51,7 @@ def _context() -> Any:
     with _CTX_LOCK:
         if _CTX is None:
             ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["hktex_engine.mesh"])
+            ctx.set_forkserver_preload(["__main__", "hktex_engine.mesh"])
             _CTX = ctx
         return _CTX
 
