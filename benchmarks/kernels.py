@@ -15,9 +15,13 @@ Writes benchmarks/results/kernels.json and .md.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import platform
+import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -167,6 +171,114 @@ def bench_train_step(query: AlbedoQuery, ks: KernelSet, p: int, rng) -> dict:
     return {"points": p, "forward_backward_s": round(t, 3)}
 
 
+def load_before(ref: str):
+    """The evaluation modules as of git ``ref`` (interpolation, knn, kernels), importable side
+    by side with the current ones, so before/after are timed in the same process and load."""
+    tmp = Path(tempfile.mkdtemp(prefix="hktex_before_"))
+    names = ("interpolation", "knn", "kernels")
+    for name in names:
+        src = subprocess.run(
+            ["git", "show", f"{ref}:hktex_engine/{name}.py"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+        for other in names:
+            src = src.replace(f"from hktex_engine.{other} import", f"from _before_{other} import")
+        (tmp / f"_before_{name}.py").write_text(src)
+    sys.path.insert(0, str(tmp))
+    return (
+        importlib.import_module("_before_interpolation"),
+        importlib.import_module("_before_kernels"),
+    )
+
+
+def _dense_colors(model, face_ids: np.ndarray, bary: np.ndarray, chunk: int) -> np.ndarray:
+    """AlbedoQuery.colors' loop (sorted by face, chunked, no grad) for any model version."""
+    order = np.argsort(face_ids, kind="stable")
+    f, b = face_ids[order], bary[order]
+    out = np.empty((f.shape[0], 3), dtype=np.float32)
+    with torch.no_grad():
+        for start in range(0, f.shape[0], chunk):
+            sl = slice(start, start + chunk)
+            fc, bc = torch.as_tensor(f[sl]), torch.as_tensor(b[sl], dtype=torch.float32)
+            out[order[sl]] = model.albedo(fc, bc).numpy()
+    return out
+
+
+def bench_before_after(query: AlbedoQuery, ks: KernelSet, args, rng) -> dict:
+    """Training step and query of the code at ``--before`` against the current code, timed
+    alternately in the same run (the shared machine's load drifts; alternation spreads it)."""
+    interp_old, kernels_old = load_before(args.before)
+    spectra = query.field.spectra
+    variants = {
+        "before": kernels_old.HeatKernelModel.from_kernelset(
+            ks, interp_old.SpectralField(spectra, device="cpu")
+        ),
+        "after": HeatKernelModel.from_kernelset(ks, query.field),
+    }
+    f, b = sample_surface(spectra.vertices, spectra.faces, 512, rng)
+    target = torch.rand(512, 3)
+    outs, grads = {}, {}
+
+    def step(model):
+        model.zero_grad()
+        out = model.albedo(f, b)
+        ((out - target) ** 2).mean().backward()
+        return out
+
+    for name, model in variants.items():  # warm up: KNN index, allocator
+        outs[name] = step(model).detach()
+        grads[name] = {n: p.grad.clone() for n, p in model.named_parameters()}
+    wall = {n: [] for n in variants}
+    cpu = {n: [] for n in variants}
+    for _ in range(args.rounds):
+        for name, model in variants.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            step(model)
+            wall[name].append(time.perf_counter() - t0)
+            cpu[name].append(time.process_time() - c0)
+    res: dict = {"train_step": {"points": 512, "rounds": args.rounds}}
+    for name in variants:
+        res["train_step"][name] = {
+            "min_s": round(min(wall[name]), 3),
+            "median_s": round(statistics.median(wall[name]), 3),
+            "median_cpu_s": round(statistics.median(cpu[name]), 3),
+        }
+    res["train_step"]["max_albedo_diff"] = float((outs["before"] - outs["after"]).abs().max())
+    res["train_step"]["max_rel_grad_diff"] = {
+        n: float(
+            (grads["before"][n] - grads["after"][n]).abs().max()
+            / grads["before"][n].abs().max().clamp(min=1e-30)
+        )
+        for n in grads["after"]
+    }
+    print("before/after train", json.dumps(res["train_step"]), flush=True)
+
+    fq, bq = sample_surface(spectra.vertices, spectra.faces, args.compare_queries, rng)
+    times = {n: [] for n in variants}
+    colors = {}
+    for _ in range(2):
+        for name, model in variants.items():
+            t0 = time.perf_counter()
+            colors[name] = _dense_colors(model, fq, bq, query.chunk_points)
+            times[name].append(time.perf_counter() - t0)
+    diff = np.abs(colors["before"] - colors["after"]).max(axis=1)
+    res["query"] = {
+        "points": args.compare_queries,
+        **{
+            n: {"best_s": round(min(t), 2), "points_per_s": round(len(fq) / min(t))}
+            for n, t in times.items()
+        },
+        "max_color_diff": float(diff.max()),
+        "points_beyond_1e-4": int((diff > 1e-4).sum()),
+    }
+    print("before/after query", json.dumps(res["query"]), flush=True)
+    res["ref"] = args.before
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kernels", type=int, default=10_000)
@@ -186,6 +298,14 @@ def main() -> None:
         default=540.0,
         help="seconds for the whole run; the million-point run shrinks to fit (and says so)",
     )
+    ap.add_argument(
+        "--before",
+        default="fc1d1ac",
+        help="git ref whose interpolation/knn/kernels modules are timed against the current ones",
+    )
+    ap.add_argument("--rounds", type=int, default=5, help="alternating training-step rounds")
+    ap.add_argument("--compare-queries", type=int, default=20_000)
+    ap.add_argument("--skip-compare", action="store_true")
     args = ap.parse_args()
     started = time.perf_counter()
     if args.threads:
@@ -228,6 +348,9 @@ def main() -> None:
     save(res, args.out)
     if args.only_million:
         return million_only(res, query, spectra, args, rng)
+    if not args.skip_compare:
+        res["before_after"] = bench_before_after(query, ks, args, rng)
+        save(res, args.out)
     res["knn"] = bench_knn(query, spectra, args.queries, ks.kernel_config.k_search, rng)
     print("knn", json.dumps(res["knn"]), flush=True)
     save(res, args.out)
@@ -372,6 +495,28 @@ def render_md(res: dict) -> str:
             f"| {m['points']} points: peak RSS / above the warm query state | "
             f"{m['peak_rss_mb']} MB / {m['peak_above_before_mb']} MB (inputs + output "
             f"{m['inputs_and_output_mb']} MB) |",
+        ]
+    if "before_after" in res:
+        ba = res["before_after"]
+        tr, qu = ba["train_step"], ba["query"]
+        lines += [
+            "",
+            f"Before (`{ba['ref']}`) / after (this commit), same process, timed alternately "
+            f"({tr['rounds']} training rounds, 2 query rounds):",
+            "",
+            "| measure | before | after |",
+            "|---|---|---|",
+            f"| training forward+backward, {tr['points']} points, min / median wall s | "
+            f"{tr['before']['min_s']} / {tr['before']['median_s']} | "
+            f"{tr['after']['min_s']} / {tr['after']['median_s']} |",
+            f"| same, median CPU s | {tr['before']['median_cpu_s']} | {tr['after']['median_cpu_s']} |",
+            f"| query {qu['points']} points (AlbedoQuery loop), points/s | "
+            f"{qu['before']['points_per_s']} | {qu['after']['points_per_s']} |",
+            "",
+            f"Training albedo max difference {tr['max_albedo_diff']:.2e}; largest relative gradient "
+            f"difference {max(tr['max_rel_grad_diff'].values()):.2e} "
+            f"({max(tr['max_rel_grad_diff'], key=tr['max_rel_grad_diff'].get)}); query colours max "
+            f"difference {qu['max_color_diff']:.2e}, {qu['points_beyond_1e-4']} points beyond 1e-4.",
         ]
     return "\n".join(lines) + "\n"
 

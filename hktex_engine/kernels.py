@@ -48,7 +48,7 @@ VERTEX_PATH_COST = 24
 PAIR_CHUNK = 16384
 #: Points per checkpointed chunk when a differentiable batch is larger than this.
 GRAD_CHUNK_POINTS = 1024
-#: Extra nearest centres fetched before the exact float64 cut to ``K_s`` (see ``_exact_cut``).
+#: Extra nearest centres fetched before the exact per-pair cut to ``K_s`` (see ``_exact_cut``).
 KNN_MARGIN = 8
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
 BARY_TOL = 1e-3
@@ -626,16 +626,18 @@ class _PairResponse(torch.autograd.Function):
 def _exact_cut(
     emb_y: torch.Tensor, emb_c: torch.Tensor, cand: torch.Tensor, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``k`` nearest of a slightly larger candidate list, by exact float64 distances.
+    """The ``k`` nearest of a slightly larger candidate list, by per-pair distances.
 
     faiss ranks with float32 ``|q|^2 + |c|^2 - 2 q.c`` computed differently for small and
     large query batches, so the ``K_s``-th neighbour (and hence a colour) could depend on the
-    rest of the batch. Re-ranking ``K_s + margin`` candidates by per-pair float64 distances,
-    ties broken by kernel index, makes the cut a function of the point alone (unless faiss's
-    round-off exceeds the margin's distance gap). Returns ``(cand (P, k), d2 (P, k))``.
+    rest of the batch. Re-ranking ``K_s + margin`` candidates by the directly computed
+    ``|c - q|^2`` of each pair (elementwise, so the same bits whatever the batch), ties broken
+    by kernel index, makes the cut a function of the point alone (unless faiss's round-off
+    exceeds the margin's distance gap). The distances are the ones the kernel weight
+    ``w_j(y)`` uses, so they are computed once. Returns ``(cand (P, k), d2 (P, k))``.
     """
     cand, _ = torch.sort(cand, dim=1)  # ties then resolve by kernel index (stable sort)
-    diff = emb_c.to(torch.float64)[cand] - emb_y.to(torch.float64)[:, None, :]
+    diff = emb_c[cand] - emb_y[:, None, :]
     d2 = (diff * diff).sum(dim=2)
     d2, order = torch.sort(d2, dim=1, stable=True)
     return cand.gather(1, order[:, :k]), d2[:, :k]

@@ -12,7 +12,7 @@ import torch
 
 from hktex_engine.errors import KernelSetError, QueryError
 from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel, KernelSet
+from hktex_engine.kernels import KNN_MARGIN, HeatKernelModel, KernelSet
 from hktex_engine.progress import Progress, check_cancel
 from hktex_engine.sampling import closest_surface_point
 from hktex_engine.spectra import Spectra
@@ -58,14 +58,16 @@ class AlbedoQuery:
     def bytes_per_point(self) -> int:
         """Upper estimate of tensor bytes one query point needs during evaluation.
 
-        Terms: the point's eigenfunctions on every node (twice, while summing vertex rows),
-        its candidates' coefficients, the candidate-by-node dot products, candidate embeddings
-        and small per-candidate vectors.
+        Terms: the point's three gathered vertex rows and its eigenfunctions on every node,
+        its candidates' coefficients, the candidate-by-node dot products, the gathered
+        candidate embeddings and their differences to the point for the exact ``K_s`` cut
+        (``K_s`` + margin of them) and small per-candidate vectors.
         """
         g, k = self.field.n_nodes, self.field.k
         k_s = min(self.model.config.k_search, len(self.model))
         d = int(self.field.embedding.shape[1])
-        floats = 3 * g * k + k_s * k + k_s * g + 2 * k_s * d + 16 * k_s
+        k_m = min(k_s + KNN_MARGIN, len(self.model))
+        floats = 4 * g * k + k_s * k + k_s * g + 2 * k_m * d + 16 * k_m
         return int(floats * (torch.finfo(self.field.dtype).bits // 8))
 
     def colors(
