@@ -39,6 +39,8 @@ def test_compose_commands_are_valid_hktex_invocations() -> None:
         assert str(args.data_dir) == "/data"
     assert services["api"]["command"].split().count("0.0.0.0") == 1
     assert "HKTEX_TOKENS" in services["api"]["environment"]  # non-loopback bind needs tokens
+    for name in ("worker", "worker-gpu"):  # job processes inherit the environment
+        assert "HKTEX_TOKENS" not in services[name]["environment"]
 
 
 def test_every_service_shares_the_data_volume() -> None:
