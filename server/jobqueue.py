@@ -311,7 +311,13 @@ def release(db: Database, job_id: str, token: str, reason: str, refund: bool = F
 def reap(db: Database) -> dict[str, int]:
     """Recover jobs whose lease expired (their supervisor died) and fail jobs whose spectra
     failed. Any supervisor may run this; it is idempotent."""
-    counts = {"requeued": 0, "failed": 0, "cancelled": 0, "dependents_failed": 0}
+    counts = {
+        "requeued": 0,
+        "failed": 0,
+        "cancelled": 0,
+        "dependents_failed": 0,
+        "spectra_requeued": 0,
+    }
     with db.write(lock=True) as s:
         t = now()
         expired = (
@@ -334,10 +340,38 @@ def reap(db: Database) -> dict[str, int]:
             .where(SpectraRow.state == "failed")
         ).all()
         for job, spectra in orphans:
+            if spectra.state != "failed":  # re-queued for an earlier job of this loop
+                continue
+            canceller = _cancelled_by(s, spectra)
+            if canceller is not None and canceller != job.owner:
+                # shared spectra: one owner's cancel must not fail another owner's fit
+                _requeue_spectra(s, spectra, job)
+                counts["spectra_requeued"] += 1
+                continue
             job.state, job.finished_at, job.updated_at = "failed", t, t
             job.error = f"spectra failed: {spectra.error or 'unknown error'}"
             counts["dependents_failed"] += 1
     return counts
+
+
+def _cancelled_by(s: Session, spectra: SpectraRow) -> str | None:
+    """The owner who cancelled the spectra's last job, if it ended by a cancel."""
+    last = s.get(JobRow, spectra.job_id) if spectra.job_id else None
+    return last.owner if last is not None and last.state == "cancelled" else None
+
+
+def _requeue_spectra(s: Session, spectra: SpectraRow, waiting: JobRow) -> None:
+    job = enqueue(
+        s,
+        waiting.owner,
+        "spectra",
+        params={"config": spectra.config},
+        mesh_id=waiting.mesh_id,
+        spectra_id=spectra.id,
+        priority=waiting.priority,
+        max_attempts=waiting.max_attempts,
+    )
+    spectra.state, spectra.job_id, spectra.error, spectra.updated_at = "queued", job.id, None, now()
 
 
 def _requeue_or_fail(s: Session, job: JobRow, reason: str) -> str:

@@ -369,3 +369,30 @@ def test_upload_validation_timeout_is_422(tmp_path, patch_obj) -> None:
     with LiveServer(settings) as live, httpx.Client(base_url=live.url, timeout=30) as c:
         r = c.post("/v1/meshes", files={"mesh": ("p.obj", patch_obj.read_bytes(), "text/plain")})
         assert r.status_code == 422 and "longer than" in r.json()["detail"], r.text
+
+
+# ---------------------------------------------------------------- 7. shared spectra and cancel
+
+
+def test_one_owners_cancel_of_shared_spectra_does_not_fail_anothers_fit(tmp_path) -> None:
+    from hktex_server import jobqueue
+
+    settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'q.db'}")
+    db = migrated(settings)
+    spectra = jobqueue.ensure_spectra(db, "alice", "msh_a", "h" * 64, {"k": 4}, "c" * 64, 3)
+    with db.write() as s:
+        fits = {
+            who: jobqueue.enqueue(s, who, "fit_uv", mesh_id=f"msh_{who}", spectra_id=spectra.id).id
+            for who in ("alice", "bob")
+        }
+    jobqueue.request_cancel(db, "alice", spectra.job_id)  # alice stops the spectra job
+    counts = jobqueue.reap(db)
+    assert counts["spectra_requeued"] == 1 and counts["dependents_failed"] == 1
+    with db.read() as s:
+        assert s.get(JobRow, fits["alice"]).state == "failed"  # her own cancel: her fit stops
+        assert s.get(JobRow, fits["bob"]).state == "queued"
+        row = s.get(SpectraRow, spectra.id)
+        assert row.state == "queued" and row.job_id != spectra.job_id
+        again = s.get(JobRow, row.job_id)
+        assert (again.owner, again.task, again.mesh_id) == ("bob", "spectra", "msh_bob")
+    db.dispose()
