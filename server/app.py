@@ -8,12 +8,13 @@ ValueError), never a 500 for bad input.
 
 from __future__ import annotations
 
+import threading
 from contextlib import asynccontextmanager
 from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
-from hktex_server import jobqueue, schemas
+from hktex_server import jobqueue, schemas, validation
 from hktex_server.auth import current_owner
 from hktex_server.blobs import BlobStore
 from hktex_server.db import Database
@@ -80,6 +81,7 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
             workers=settings.workers if run_supervisor else 0,
             devices=detect_devices(settings),
         )
+        threading.Thread(target=validation.warm, name="hktex-validation-warm", daemon=True).start()
         thread = SupervisorThread(settings) if run_supervisor else None
         if thread is not None:
             thread.start()

@@ -56,6 +56,18 @@ def _context() -> Any:
         return _CTX
 
 
+def warm() -> None:
+    """Start the forkserver now (a background thread at service start), so the first upload
+    does not pay its ~1.2 s start. Failures only mean the first upload starts it."""
+    try:
+        _context()
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
+    except Exception:  # noqa: BLE001 - best effort; validate_mesh reports real failures
+        pass
+
+
 def _child(conn: Any, path: str, texture: str | None, max_vertices: int, file_type: str | None):
     from hktex_engine.errors import HKTexError
     from hktex_engine.mesh import load_mesh
