@@ -26,6 +26,7 @@ from hktex_engine.optimise import (
     axis_pair,
     face_unit_normals,
     theta_in_faces,
+    trace_on_surface,
     trace_transporting,
 )
 
@@ -144,8 +145,10 @@ class DensityController:
         face_frames: torch.Tensor,
         tracer: Tracer,
         rules: DensityRules | None = None,
+        transport_theta: bool = False,
     ) -> None:
         self.rules = rules or DensityRules()
+        self.transport_theta = bool(transport_theta)
         r = self.rules
         self.enabled = bool(params.densify)
         self.budget = int(params.budget)
@@ -282,10 +285,12 @@ class DensityController:
     def new_rows(self, model, clone: torch.Tensor, split: torch.Tensor) -> dict:
         """Rows for clones (exact copies) and split children (two per parent, traced apart).
 
-        A child that lands in another face gets its parent's long axis parallel-transported
-        along its path and theta re-expressed against that face's u_ref
-        (``optimise.theta_in_faces``), so both children keep the parent's 3-D orientation.
-        Children start with zero optimiser state, so no Adam row needs adjusting.
+        Children keep their parent's theta by default: the parent's kernel is shaped by the
+        global field at angle theta from every face's u_ref, so the same number orients each
+        child like the parent's footprint where the child lands. With ``transport_theta`` a
+        child that lands in another face instead gets its parent's long axis
+        parallel-transported along its path and theta re-expressed against that face's u_ref
+        (``optimise.theta_in_faces``). Children start with zero optimiser state either way.
         """
         rows = {name: getattr(model, name).detach() for name in KERNEL_ATTRIBUTES}
         out = {name: t[clone] for name, t in rows.items()}
@@ -297,14 +302,18 @@ class DensityController:
         axes = axis_pair(self.face_frames, self.face_normals, f, theta)  # (S, 2, 3) float64
         offset = ((1.0 - eps) * self.rules.split_offset).to(axes.dtype)[:, None] * axes[:, 0]
         f2, axes2, theta2 = torch.cat([f, f]), torch.cat([axes, axes]), torch.cat([theta, theta])
-        end_f, end_b, _, end_axes = trace_transporting(
-            self.tracer, f2, torch.cat([b, b]), torch.cat([offset, -offset]), axes2
-        )
+        offsets = torch.cat([offset, -offset])
+        if self.transport_theta:
+            end_f, end_b, _, end_axes = trace_transporting(
+                self.tracer, f2, torch.cat([b, b]), offsets, axes2
+            )
+        else:
+            end_f, end_b, _ = trace_on_surface(self.tracer, f2, torch.cat([b, b]), offsets)
         children = {name: torch.cat([t[split], t[split]]) for name, t in rows.items()}
         children["face_ids"] = end_f
         children["bary"] = end_b.to(rows["bary"].dtype)
         moved = torch.nonzero(end_f != f2).squeeze(1)
-        if moved.numel():
+        if self.transport_theta and moved.numel():
             new_theta, _ = theta_in_faces(
                 self.face_frames, self.face_normals, end_f[moved], end_axes[moved], theta2[moved]
             )

@@ -184,12 +184,15 @@ def fit_uv(
     checkpoint_dir: str | Path | None = None,
     device: str | torch.device | None = None,
     eval_points: int = EVAL_POINTS,
+    *,
+    transport_theta: bool = False,
 ) -> FitResult:
     """Fit a kernel set to ``mesh``'s texture on ``spectra``'s grid.
 
     ``checkpoint_dir`` makes the fit resumable: a rerun with the same arguments continues
     from the latest checkpoint (and a cancelled fit leaves one). ``eval_points`` sets the
-    surface-PSNR sample count (EVALUATION.md: 60,000; tests use fewer).
+    surface-PSNR sample count (EVALUATION.md: 60,000; tests use fewer). ``transport_theta``
+    re-expresses theta when a centre changes face (``fitting.run_fit``; off by default).
     """
     params = params or FitParams()
     if not mesh.has_texture:
@@ -222,6 +225,8 @@ def fit_uv(
         "spectra": spectra.config_hash,
         "params": dataclasses.asdict(dataclasses.replace(params, checkpoint_every=0)),
     }
+    if transport_theta:  # another trajectory; absent otherwise so older checkpoints resume
+        fingerprint["transport_theta"] = True
     loop: LoopResult = run_fit(
         model,
         objective,
@@ -234,6 +239,7 @@ def fit_uv(
         progress=progress,
         checkpoint_dir=checkpoint_dir,
         fingerprint=fingerprint,
+        transport_theta=transport_theta,
     )
     timings["fit_s"] = loop.seconds
 

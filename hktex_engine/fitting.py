@@ -103,6 +103,7 @@ def run_fit(
     momentum: float | None = None,
     on_step: Callable[[int, float], None] | None = None,
     deterministic: bool = True,
+    transport_theta: bool = False,
 ) -> LoopResult:
     """Optimise ``model`` in place for ``params.steps`` steps, resuming from a checkpoint.
 
@@ -115,6 +116,11 @@ def run_fit(
     with one seed differ by float rounding (measured: 3e-8..2e-7 after 8 steps on 2 threads).
     Only on the CPU: CUDA runs are not bitwise reproducible anyway (atomics in many kernels)
     and the setting would make torch warn or fail on ops without a deterministic kernel.
+    ``transport_theta`` re-expresses theta when a centre (or a split child) lands in another
+    face by parallel-transporting its axis (``optimise.theta_in_faces``). Off by default:
+    the kernel of a fixed theta is a continuous function of its centre across an edge (the
+    spectral basis is a global field at angle theta from every face's u_ref), re-expressing
+    makes it jump, and it measured worse (docs/fitting.md, "Orientation across faces").
     """
     previous = (
         torch.are_deterministic_algorithms_enabled(),
@@ -137,6 +143,7 @@ def run_fit(
             fingerprint,
             momentum,
             on_step,
+            transport_theta,
         )
     finally:
         torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
@@ -156,13 +163,22 @@ def _run_fit(
     fingerprint,
     momentum,
     on_step,
+    transport_theta=False,
 ) -> LoopResult:
     rng = rng if rng is not None else np.random.default_rng(params.seed)
     total = int(params.steps)
     opt = KernelOptimiser(
-        model, params, tracer, vertices, faces, momentum=momentum, face_frames=face_frames
+        model,
+        params,
+        tracer,
+        vertices,
+        faces,
+        momentum=momentum,
+        face_frames=face_frames if transport_theta else None,
     )
-    density = DensityController(params, total, vertices, faces, face_frames, tracer)
+    density = DensityController(
+        params, total, vertices, faces, face_frames, tracer, transport_theta=transport_theta
+    )
     ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
     fp = {"format": CHECKPOINT_FORMAT, **(fingerprint or {})}
     start, resumed_from = 0, None

@@ -1,9 +1,12 @@
 """Kernel orientation across faces: theta re-expressed after centre steps and splits.
 
-theta is measured from the centre face's u_ref, so a centre that changes face must keep its
-long axis in 3-D (parallel-transported). Expected answers come from geometry that does not use
-the code under test: on a plane the axis is unchanged, on a cylinder transport keeps the
-(around, along) components, on a sphere the axis keeps its signed angle to the geodesic.
+theta is measured from the centre face's u_ref. With transport on, a centre that changes face
+keeps its long axis in 3-D (parallel-transported). Expected answers come from geometry that
+does not use the code under test: on a plane the axis is unchanged, on a cylinder transport
+keeps the (around, along) components, on a sphere the axis keeps its signed angle to the
+geodesic. The last tests pin why transport is off by default: with the real kernel model the
+response of a kernel with a fixed theta is continuous as its centre crosses an edge, and
+re-expressing theta makes it jump.
 """
 
 from __future__ import annotations
@@ -20,12 +23,13 @@ from hktex_engine.geodesics import SurfaceTracer
 from hktex_engine.optimise import (
     KernelOptimiser,
     _AdamRows,
+    axis_pair,
     face_unit_normals,
     long_axis,
     theta_in_faces,
 )
 from hktex_engine.synthetic import cylinder, grid_patch, icosphere
-from tests.fitting_standins import FlatTracer, ToyModel, flat_patch
+from tests.fitting_standins import FlatTracer, ToyModel, ToyObjective, flat_patch
 
 DT = torch.float64
 
@@ -202,7 +206,7 @@ def _controller(model, v, f, frames):
     verts, faces = torch.as_tensor(v, dtype=DT), torch.as_tensor(f)
     tracer = SurfaceTracer(v, f)
     fr = torch.as_tensor(frames, dtype=DT)
-    ctl = DensityController(params, 100, verts, faces, fr, tracer)
+    ctl = DensityController(params, 100, verts, faces, fr, tracer, transport_theta=True)
     ctl.bind(model)
     return ctl, face_unit_normals(verts, faces)
 
@@ -284,3 +288,105 @@ def test_frames_need_a_tracer_that_transports():
             torch.as_tensor(f),
             face_frames=torch.as_tensor(np.tile([1.0, 0, 0], (len(f), 1))),
         )
+
+
+def test_fit_loop_keeps_theta_unless_asked(monkeypatch):
+    from hktex_engine import fitting
+
+    seen = []
+    real = fitting.KernelOptimiser
+
+    def spy(*args, **kw):
+        seen.append(kw.get("face_frames"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(fitting, "KernelOptimiser", spy)
+    v, f = flat_patch(5)
+    frames = torch.as_tensor(np.tile([1.0, 0, 0], (len(f), 1)), dtype=DT)
+    for flag in (False, True):
+        model = ToyModel(v, f, np.arange(3), np.full((3, 3), 1 / 3))
+        fitting.run_fit(
+            model,
+            ToyObjective(v, f, 8),
+            FitParams(kernels=3, steps=1, densify=False),
+            FlatTracer(v, f),
+            torch.as_tensor(v, dtype=DT),
+            torch.as_tensor(f),
+            frames,
+            transport_theta=flag,
+        )
+    assert seen[0] is None and seen[1] is frames
+
+
+@pytest.fixture(scope="module")
+def real_model_parts():
+    from hktex_engine.config import SpectralConfig
+    from hktex_engine.interpolation import SpectralField
+    from hktex_engine.mesh import mesh_from_arrays
+    from hktex_engine.spectra import compute_spectra
+
+    v, f = icosphere(2)
+    cfg = SpectralConfig(angles=5, anisotropies=(1.0, 30.0), k=16, k_iso=9)
+    sp = compute_spectra(mesh_from_arrays(v, f), cfg)
+    return sp, SpectralField(sp, device="cpu")
+
+
+def test_fixed_theta_kernel_is_continuous_across_an_edge_and_transport_jumps(real_model_parts):
+    """Why transport_theta is off by default (measured on the real HeatKernelModel).
+
+    The basis at (theta, s) is the global ALBO whose axis is at angle theta from u_ref in
+    every face, so a kernel's footprint follows that field: moving its centre a distance h
+    across an edge at fixed theta changes its responses by O(h); re-expressing theta swaps
+    the whole field for one rotated by the frames' difference, a jump that does not shrink.
+    """
+    from hktex_engine.kernels import HeatKernelModel
+    from hktex_engine.sampling import sample_surface
+
+    sp, field = real_model_parts
+    V = torch.as_tensor(np.array(sp.vertices), dtype=DT)
+    F = torch.as_tensor(np.array(sp.faces))
+    frames = torch.as_tensor(np.array(sp.face_frames), dtype=DT)
+    normals = face_unit_normals(V, F)
+    tracer = SurfaceTracer(np.array(sp.vertices), np.array(sp.faces))
+    rng = np.random.default_rng(5)
+    n = 40
+    fid = torch.as_tensor(rng.integers(0, len(F), n))
+    d = 1e-5  # start just inside edge (0, 1), step straight out across it
+    bary = torch.tensor([[0.5 - d, 0.5 - d, 2 * d]], dtype=DT).expand(n, 3).clone()
+    tri = V[F[fid]]
+    out = torch.linalg.cross(tri[:, 1] - tri[:, 0], normals[fid], dim=-1)
+    away = ((out * (tri[:, 2] - tri[:, 0])).sum(-1) > 0)[:, None]
+    out = torch.where(away, -out, out)
+    out = out / out.norm(dim=-1, keepdim=True)
+    theta = torch.as_tensor(rng.uniform(0.3, math.pi - 0.3, n), dtype=DT)
+    pf, pb = (torch.as_tensor(a) for a in sample_surface(V.numpy(), F.numpy(), 1500, rng))
+
+    def responses(face, b, th):
+        m = HeatKernelModel(
+            field,
+            face,
+            b,
+            th,
+            torch.full((n,), 30.0),
+            torch.full((n,), 0.6),
+            torch.full((n,), 50.0),
+            torch.zeros(n, 3),
+            torch.zeros(3),
+        )
+        with torch.no_grad():
+            return m.responses(pf, pb)[0].to(DT)
+
+    r0 = responses(fid, bary, theta)
+    change = {}
+    for h in (1e-3, 1e-4):
+        res = tracer.trace_full(
+            fid, bary, h * out, transport=axis_pair(frames, normals, fid, theta)
+        )
+        assert bool((res.face_ids != fid).all())
+        th_t, _ = theta_in_faces(frames, normals, res.face_ids, res.transported, theta)
+        keep = (responses(res.face_ids, res.bary, theta) - r0).abs().max(0).values.median()
+        moved = (responses(res.face_ids, res.bary, th_t) - r0).abs().max(0).values.median()
+        change[h] = (float(keep), float(moved))
+    assert change[1e-4][0] < 0.2 * change[1e-3][0]  # O(h): continuous
+    assert change[1e-4][1] > 0.5 * change[1e-3][1]  # does not shrink with h: a jump
+    assert change[1e-4][1] > 5 * change[1e-4][0]
