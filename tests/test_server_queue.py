@@ -119,6 +119,9 @@ def test_progress_and_success(proc_backend):
 
 def test_cancel_running_job_stops_cooperatively(proc_backend):
     settings, db = proc_backend
+    # A generous grace: on a loaded machine 1 s could expire while the worker is still
+    # writing its final state, and SIGTERM would then (rightly) be logged.
+    settings = settings.model_copy(update={"cancel_grace_seconds": 20.0})
     jid = add_sleep_job(db, steps=200, seconds=40)
     with SupervisorInThread(settings):
         wait_for(lambda: job(db, jid).progress["step"] > 0, 30, "progress")
