@@ -221,7 +221,8 @@ def worker_env(settings: Settings, device: str | None, token: str) -> dict[str, 
     env = os.environ.copy()
     env["CUDA_VISIBLE_DEVICES"] = "" if device in (None, "cpu") else device
     env["HKTEX_LEASE_TOKEN"] = token  # not on the command line: ps shows argv
-    # the job needs no API tokens: keep them out of its environment
+    # the job needs no API tokens: keep them out of its environment and its settings
+    env.pop("HKTEX_TOKENS", None)
     env["HKTEX_WORKER_SETTINGS"] = settings.model_dump_json(exclude={"tokens"})
     threads = str(settings.threads_per_job())
     for var in THREAD_VARS:

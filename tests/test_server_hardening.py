@@ -396,3 +396,14 @@ def test_one_owners_cancel_of_shared_spectra_does_not_fail_anothers_fit(tmp_path
         again = s.get(JobRow, row.job_id)
         assert (again.owner, again.task, again.mesh_id) == ("bob", "spectra", "msh_bob")
     db.dispose()
+
+
+def test_worker_env_never_carries_api_tokens(tmp_path, monkeypatch) -> None:
+    """Tokens set in the server's environment must not reach job processes."""
+    from hktex_server.settings import Settings
+    from hktex_server.supervisor import worker_env
+
+    monkeypatch.setenv("HKTEX_TOKENS", "secret:alice")
+    env = worker_env(Settings(data_dir=tmp_path), "cpu", "t")
+    assert "HKTEX_TOKENS" not in env
+    assert not any("secret" in value for value in env.values())
