@@ -28,7 +28,6 @@ from hktex_engine.alignment import align_basis
 from hktex_engine.config import SpectralConfig
 from hktex_engine.eigensolver import (
     SolveInfo,
-    eigs_lowest,
     eigs_sliced,
     eigs_warm,
     estimate_lambda_k,
@@ -303,7 +302,7 @@ def compute_spectra(
         p = _work_size(config, n) if solver == "warm" else K
         k_first = max(p, need)
         weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
-        iso_vals, iso_vecs, _ = eigs_lowest(cotangent_stiffness(V, F), mass, k_first, weyl)
+        iso_vals, iso_vecs, _ = eigs_sliced(cotangent_stiffness(V, F), mass, k_first, weyl)
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
         check_cancel(progress)
