@@ -168,7 +168,7 @@ def main(argv=None) -> None:
         "|---|---:|---:|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        mode = "transported" if r["mode"] == "on" else "kept as number (old)"
+        mode = "transported" if r["mode"] == "on" else "kept as number (default)"
         frac = r["face_changes_per_step_fraction"]
         lines.append(
             f"| {r['case']} | {r['seed']} | {r['steps']} | {mode} | {r['psnr']:.2f} "
