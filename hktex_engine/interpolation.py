@@ -84,18 +84,23 @@ class _InterpolatedRows(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, evecs, verts, bary, nodes, weights, out_dtype):  # type: ignore[override]
+    def forward(ctx, evecs, verts, bary, nodes, weights, out_dtype, rows_all=None):  # type: ignore[override]
         ctx.out_dtype = out_dtype
         n, k = verts.shape[0], evecs.shape[2]
         need_grad = ctx.needs_input_grad[2] or ctx.needs_input_grad[4]
         itemsize = torch.finfo(out_dtype).bits // 8
-        keep = need_grad and n * 7 * k * itemsize <= SAVE_BYTES
+        # Pre-gathered rows (a caller's cache, see :class:`RowCache`) are never saved: the
+        # cache is updated in place between steps.
+        keep = need_grad and (rows_all is not None or n * 7 * k * itemsize <= SAVE_BYTES)
         out = torch.empty((n, k), dtype=out_dtype, device=bary.device)
         if keep:
             p3 = torch.empty((n, 3, k), dtype=out_dtype, device=bary.device)
             p4 = torch.empty((n, 4 * k), dtype=out_dtype, device=bary.device)
         for sl in _chunks(n, CHUNK_ROWS):
-            rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3 * 4, K)
+            if rows_all is None:
+                rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3 * 4, K)
+            else:
+                rows = rows_all[sl]
             b, w = bary[sl].to(out_dtype), weights[sl].to(out_dtype)
             c = rows.shape[0]
             if keep:
@@ -119,13 +124,13 @@ class _InterpolatedRows(torch.autograd.Function):
     def backward(ctx, grad_out):  # type: ignore[override]
         need_b, need_w = ctx.needs_input_grad[2], ctx.needs_input_grad[4]
         if not (need_b or need_w):
-            return None, None, None, None, None, None
+            return None, None, None, None, None, None, None
         if ctx.keep:
             p3, p4, bary, weights = ctx.saved_tensors
             g = grad_out[:, :, None]
             grad_b = torch.bmm(p3, g).squeeze(2).to(bary.dtype) if need_b else None
             grad_w = torch.bmm(p4, g).squeeze(2).to(weights.dtype) if need_w else None
-            return None, None, grad_b, None, grad_w, None
+            return None, None, grad_b, None, grad_w, None, None
         evecs, verts, bary, nodes, weights = ctx.saved_tensors
         grad_b = torch.zeros_like(bary) if need_b else None
         grad_w = torch.zeros_like(weights) if need_w else None
@@ -136,7 +141,45 @@ class _InterpolatedRows(torch.autograd.Function):
                 grad_b[sl] = torch.einsum("uvc,uc->uv", t, weights[sl].to(t.dtype))
             if need_w:
                 grad_w[sl] = torch.einsum("uvc,uv->uc", t, bary[sl].to(t.dtype))
-        return None, None, grad_b, None, grad_w, None
+        return None, None, grad_b, None, grad_w, None, None
+
+
+class RowCache:
+    """The gathered ``(N, 3 * 4, K)`` eigenvector rows of N points, kept between calls.
+
+    A point's 12 rows depend only on its face's vertices and its 4 grid nodes, so between
+    training steps only kernels that changed face or grid cell need a new gather; the rest
+    reuse the block (the per-step gather of every centre's rows was a quarter of a training
+    step, see docs/kernels.md "Performance"). The key comparison is the whole invalidation
+    rule: equal keys mean equal rows. ``max_bytes`` caps the block; beyond it callers gather.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._key: torch.Tensor | None = None
+        self._rows: torch.Tensor | None = None
+        self.regathered = 0  # rows gathered by the last call (for tests and profiling)
+
+    def fits(self, field: SpectralField, n: int) -> bool:
+        itemsize = torch.finfo(field.dtype).bits // 8
+        return n * 12 * field.k * itemsize <= self.max_bytes
+
+    @torch.no_grad()
+    def rows(self, field: SpectralField, verts: torch.Tensor, nodes: torch.Tensor) -> torch.Tensor:
+        key = torch.cat([verts, nodes], dim=1)
+        if self._key is None or self._key.shape != key.shape or self._rows.dtype != field.dtype:
+            self._rows = torch.empty(
+                (key.shape[0], 12, field.k), dtype=field.dtype, device=field.device
+            )
+            changed = torch.arange(key.shape[0], device=key.device)
+        else:
+            changed = torch.nonzero((key != self._key).any(dim=1)).squeeze(1)
+        for start in range(0, changed.shape[0], CHUNK_ROWS):
+            idx = changed[start : start + CHUNK_ROWS]
+            self._rows[idx] = _gather_rows(field.evecs, verts[idx], nodes[idx], field.dtype)
+        self._key = key
+        self.regathered = int(changed.shape[0])
+        return self._rows
 
 
 def _gather_rows(
@@ -237,15 +280,23 @@ class SpectralField:
         return dense.to(self.dtype) @ self.evals
 
     def eigenfunctions(
-        self, face_ids: torch.Tensor, bary: torch.Tensor, theta: torch.Tensor, s: torch.Tensor
+        self,
+        face_ids: torch.Tensor,
+        bary: torch.Tensor,
+        theta: torch.Tensor,
+        s: torch.Tensor,
+        rows: RowCache | None = None,
     ) -> torch.Tensor:
         """``phi_k(x)`` at surface points for per-point ``(theta, s)``: (P, K).
 
-        Memory stays bounded by :data:`CHUNK_ROWS` in forward and backward.
+        Memory stays bounded by :data:`CHUNK_ROWS` in forward and backward. ``rows``: a
+        :class:`RowCache` of the same points (one per kernel set) that keeps their gathered
+        eigenvector rows between calls.
         """
         nodes, weights = self.nodes(theta, s)
         verts = self.faces[face_ids]
-        return _InterpolatedRows.apply(self.evecs, verts, bary, nodes, weights, self.dtype)
+        block = None if rows is None else rows.rows(self, verts, nodes)
+        return _InterpolatedRows.apply(self.evecs, verts, bary, nodes, weights, self.dtype, block)
 
     def node_values(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
         """Eigenfunctions at surface points on every grid node: (P, G, K).

@@ -29,7 +29,7 @@ from torch import nn
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
-from hktex_engine.interpolation import SpectralField
+from hktex_engine.interpolation import RowCache, SpectralField
 from hktex_engine.knn import CandidateSearch
 
 THETA_RANGE = (0.0, math.pi)
@@ -48,6 +48,10 @@ VERTEX_PATH_COST = 24
 PAIR_CHUNK = 16384
 #: Points per checkpointed chunk when a differentiable batch is larger than this.
 GRAD_CHUNK_POINTS = 1024
+#: Bytes the training path may keep of the centres' gathered eigenvector rows between steps
+#: (12 K per kernel: 123 MB for 10k kernels at K = 256 float32); above it they are gathered
+#: each step.
+ROWS_CACHE_BYTES = 256 * 2**20
 #: Extra nearest centres fetched before the exact per-pair cut to ``K_s`` (see ``_exact_cut``).
 KNN_MARGIN = 8
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
@@ -204,6 +208,7 @@ class HeatKernelModel(nn.Module):
         self._generation = 0
         self._cache_key: tuple | None = None
         self._knn_key: tuple | None = None
+        self._rows = RowCache(ROWS_CACHE_BYTES)
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -395,15 +400,17 @@ class HeatKernelModel(nn.Module):
         self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
         self._knn_key = key
 
-    def _spectral_terms(self, idx: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Per-kernel terms for kernels ``idx``.
+    def _spectral_terms(
+        self, idx: torch.Tensor, rows: RowCache | None = None
+    ) -> tuple[torch.Tensor, ...]:
+        """Per-kernel terms for kernels ``idx`` (``rows``: a cache for ``idx = arange(N)``).
 
         ``coef = exp(-t lambda) phi(c)`` (U, K), ``h(c) = coef . phi(c)`` (U,), the bilinear
         nodes and weights (U, 4) and the centre embeddings (U, D).
         """
         theta, s = self.theta[idx], self.s[idx]
         face_ids, bary = self.face_ids[idx], self.bary[idx]
-        phi_c = self.field.eigenfunctions(face_ids, bary, theta, s)
+        phi_c = self.field.eigenfunctions(face_ids, bary, theta, s, rows)
         lam = self.field.eigenvalues(theta, s)
         coef = torch.exp(-self.config.diffusion_time * lam) * phi_c
         norm = (coef * phi_c).sum(dim=1)
@@ -488,7 +495,13 @@ class HeatKernelModel(nn.Module):
         for the batch's unique candidates; their backward touches only rows with gradient.
         """
         uniq, local = torch.unique(cand, return_inverse=True)
-        terms = self._spectral_terms(uniq)
+        if uniq.shape[0] * 2 >= len(self) and self._rows.fits(self.field, len(self)):
+            # Most kernels are candidates (training batches): all of them, from cached rows.
+            uniq = torch.arange(len(self), device=cand.device)
+            local = cand
+            terms = self._spectral_terms(uniq, self._rows)
+        else:
+            terms = self._spectral_terms(uniq)
         coef, norm, nodes, weights, emb_c = terms
         k_c = min(self.config.k_blend, cand.shape[1])
         detached = [t.detach() for t in terms]
@@ -729,6 +742,8 @@ def _query_float(
 
 
 def _float(x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """A copy: parameters must never alias the caller's arrays (``as_tensor`` of a float64
+    array on a float64 CPU field would, and optimiser steps would then write into them)."""
     if torch.is_tensor(x):
         return x.detach().to(device, dtype).clone()
-    return torch.as_tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)
+    return torch.tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)

@@ -155,3 +155,34 @@ def test_saved_blends_and_regathering_backward_agree(spectra, field64, monkeypat
         grads.append((theta.grad, s.grad, bary.grad, bary.detach(), out.detach()))
     for a, b in zip(grads[0][:3] + grads[0][4:], grads[1][:3] + grads[1][4:], strict=True):
         np.testing.assert_allclose(a.numpy(), b.numpy(), rtol=1e-12, atol=1e-14)
+
+
+def test_row_cache_regathers_exactly_the_changed_points(spectra, field64):
+    """Cached rows equal a fresh gather after faces and grid cells change for some points."""
+    rng = np.random.default_rng(12)
+    n = 9
+    face_ids = torch.as_tensor(rng.integers(0, spectra.faces.shape[0], n))
+    theta = torch.as_tensor(rng.uniform(0.1, 3.0, n))
+    s = torch.as_tensor(rng.uniform(0.7, 2.2, n))
+    cache = interpolation.RowCache(max_bytes=10**9)
+    assert cache.fits(field64, n) and not interpolation.RowCache(0).fits(field64, n)
+
+    def check():
+        nodes, _ = field64.nodes(theta, s)
+        verts = field64.faces[face_ids]
+        got = cache.rows(field64, verts, nodes)
+        expect = interpolation._gather_rows(field64.evecs, verts, nodes, torch.float64)
+        assert torch.equal(got, expect)
+
+    check()
+    assert cache.regathered == n
+    check()
+    assert cache.regathered == 0
+    before, _ = field64.nodes(theta, s)
+    theta[2] = 3.1 if theta[2] < 1.5 else 0.05  # another grid cell
+    face_ids[5] = (face_ids[5] + 1) % spectra.faces.shape[0]  # another face
+    s[7] += 1e-9  # same cell: no regather
+    after, _ = field64.nodes(theta, s)
+    assert not torch.equal(before[2], after[2]) and torch.equal(before[7], after[7])
+    check()
+    assert cache.regathered == 2
