@@ -90,7 +90,10 @@ def _bound_threads() -> None:
     if raw.isdigit() and int(raw) >= 1:
         import drjit as dr
 
-        dr.set_thread_count(int(raw))
+        # Never below 2: with a pool of one thread, a render whose texture calls back into
+        # PyTorch (dr.wrap) deadlocked (measured: tests/test_render.py hung with
+        # OMP_NUM_THREADS=1, ran in 3 s with the default pool).
+        dr.set_thread_count(max(2, int(raw)))
 
 
 def thread_flags() -> None:
