@@ -34,7 +34,7 @@ class SpectralConfig:
     k: int = 256
     k_iso: int = 65
     rotation: Literal["block", "full"] = "block"
-    evecs_dtype: Literal["float16", "float32"] = "float32"
+    evecs_dtype: Literal["float16", "float32"] = "float16"
     tangent_field: Literal["axis_smoothed", "curvature"] = "axis_smoothed"
 
     def __post_init__(self) -> None:

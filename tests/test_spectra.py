@@ -23,7 +23,9 @@ from hktex_engine.spectra import (
     write_spectra,
 )
 
-TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9, rotation="block")
+TINY = SpectralConfig(
+    angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9, rotation="block", evecs_dtype="float32"
+)
 
 
 def _ellipsoid_mesh(level: int = 3, seed: int = 2) -> Mesh:
