@@ -6,38 +6,18 @@ import numpy as np
 import pytest
 
 from hktex_engine.errors import SpectraError
+from tests.demo_support import DEMO_CONFIG, demo_arrays, random_kernelset
 
 
 @pytest.fixture(scope="module")
 def setup():
-    from hktex_engine.config import SpectralConfig
-    from hktex_engine.kernels import KernelSet
     from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.sampling import sample_surface
     from hktex_engine.spectra import compute_spectra
-    from hktex_engine.synthetic import textured_demo
 
-    V, F, uv, tex = textured_demo(subdivisions=2, texture_size=32)
+    V, F, uv, tex = demo_arrays()
     mesh = mesh_from_arrays(V * 2.0 + 0.5, F, uv, tex)
-    spectra = compute_spectra(
-        mesh, SpectralConfig(angles=3, anisotropies=(1.0, 5.0), k=16, k_iso=9)
-    )
-    rng = np.random.default_rng(0)
-    n = 80
-    f, b = sample_surface(spectra.vertices, spectra.faces, n, rng)
-    ks = KernelSet(
-        face_ids=f,
-        barycentrics=b,
-        theta=rng.uniform(0, np.pi, n),
-        eta=1 + 99 * rng.random(n),
-        threshold=rng.uniform(0.5, 0.9, n),
-        sharpness=10 + 40 * rng.random(n),
-        colors=rng.uniform(-0.5, 0.5, (n, 3)),
-        base_color=np.array([0.5, 0.4, 0.3]),
-        mesh_hash=spectra.mesh_hash,
-        config_hash=spectra.config_hash,
-    )
-    return mesh, spectra, ks
+    spectra = compute_spectra(mesh, DEMO_CONFIG)
+    return mesh, spectra, random_kernelset(spectra, 80)
 
 
 def test_rasterize_matches_bruteforce_point_in_triangle():

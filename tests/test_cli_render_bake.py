@@ -8,55 +8,31 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from hktex_engine.errors import RenderError
+from tests.demo_support import DEMO_CONFIG, demo_arrays, random_kernelset, require_render
 
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    from hktex_engine.config import SpectralConfig
     from hktex_engine.hkt import save_hkt
-    from hktex_engine.kernels import KernelSet
     from hktex_engine.mesh import load_mesh
-    from hktex_engine.sampling import sample_surface
     from hktex_engine.spectra import compute_spectra, write_spectra
-    from hktex_engine.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.synthetic import write_textured_obj
 
     root = tmp_path_factory.mktemp("cli")
-    V, F, uv, tex = textured_demo(subdivisions=2, texture_size=32)
+    V, F, uv, tex = demo_arrays()
     obj = write_textured_obj(root / "m.obj", V, F, uv, tex)
     mesh = load_mesh(obj)
-    spectra = compute_spectra(
-        mesh, SpectralConfig(angles=3, anisotropies=(1.0, 5.0), k=16, k_iso=9)
-    )
+    spectra = compute_spectra(mesh, DEMO_CONFIG)
     sdir = write_spectra(spectra, root / "spectra")
-    rng = np.random.default_rng(0)
-    n = 40
-    f, b = sample_surface(spectra.vertices, spectra.faces, n, rng)
-    ks = KernelSet(
-        face_ids=f,
-        barycentrics=b,
-        theta=rng.uniform(0, np.pi, n),
-        eta=1 + 99 * rng.random(n),
-        threshold=rng.uniform(0.5, 0.9, n),
-        sharpness=10 + 40 * rng.random(n),
-        colors=rng.uniform(-0.5, 0.5, (n, 3)),
-        base_color=np.array([0.5, 0.4, 0.3]),
-        mesh_hash=spectra.mesh_hash,
-        config_hash=spectra.config_hash,
-    )
-    hkt = save_hkt(ks, root / "k.hkt")
+    hkt = save_hkt(random_kernelset(spectra, 40), root / "k.hkt")
     return root, obj, sdir, hkt
 
 
 @pytest.mark.mitsuba
 def test_cli_render(files, capsys):
-    from hktex_engine import render
     from hktex_engine.cli import main
 
-    try:
-        render.ensure_variant()
-    except RenderError as exc:
-        pytest.skip(f"no Mitsuba AD variant: {exc}")
+    require_render()
     root, _, sdir, hkt = files
     out = root / "r.png"
     argv = [

@@ -6,29 +6,22 @@ import numpy as np
 import pytest
 import torch
 
-from hktex_engine.errors import Cancelled, RenderError, SpectraError
+from hktex_engine.errors import Cancelled, SpectraError
+from tests.demo_support import DEMO_CONFIG, demo_arrays, require_render
 
 pytestmark = pytest.mark.mitsuba
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    from hktex_engine import render
-    from hktex_engine.config import SpectralConfig
     from hktex_engine.mesh import mesh_from_arrays
     from hktex_engine.spectra import compute_spectra
-    from hktex_engine.synthetic import textured_demo
     from hktex_engine.views import load_views, render_reference_views
 
-    try:
-        render.ensure_variant()
-    except RenderError as exc:
-        pytest.skip(f"no Mitsuba AD variant: {exc}")
-    V, F, uv, tex = textured_demo(subdivisions=2, texture_size=32)
+    require_render()
+    V, F, uv, tex = demo_arrays()
     mesh = mesh_from_arrays(V, F, uv, tex)
-    spectra = compute_spectra(
-        mesh, SpectralConfig(angles=3, anisotropies=(1.0, 5.0), k=16, k_iso=9)
-    )
+    spectra = compute_spectra(mesh, DEMO_CONFIG)
     out = tmp_path_factory.mktemp("mv") / "views"
     render_reference_views(mesh, out, n_views=5, resolution=(24, 24), spp=8)
     views = load_views(out)

@@ -7,28 +7,21 @@ import pytest
 import torch
 from scipy import ndimage
 
-from hktex_engine.errors import RenderError
+from tests.demo_support import demo_arrays, require_render
 
 pytestmark = pytest.mark.mitsuba
 
 
 @pytest.fixture(scope="module")
 def R():
-    from hktex_engine import render
-
-    try:
-        render.ensure_variant()
-    except RenderError as exc:
-        pytest.skip(f"no Mitsuba AD variant: {exc}")
-    return render
+    return require_render()
 
 
 @pytest.fixture(scope="module")
 def textured():
     from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.synthetic import textured_demo
 
-    V, F, uv, tex = textured_demo(subdivisions=2, texture_size=32)
+    V, F, uv, tex = demo_arrays()
     return mesh_from_arrays(V * 3.0 + 1.0, F, uv, tex)  # file units differ from normalised
 
 

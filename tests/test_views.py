@@ -10,23 +10,19 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from hktex_engine.errors import RenderError, ViewsError
+from hktex_engine.errors import ViewsError
+from tests.demo_support import demo_arrays, require_render
 
 pytestmark = pytest.mark.mitsuba
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    from hktex_engine import render
     from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.synthetic import textured_demo
     from hktex_engine.views import render_reference_views
 
-    try:
-        render.ensure_variant()
-    except RenderError as exc:
-        pytest.skip(f"no Mitsuba AD variant: {exc}")
-    V, F, uv, tex = textured_demo(subdivisions=2, texture_size=32)
+    require_render()
+    V, F, uv, tex = demo_arrays()
     mesh = mesh_from_arrays(V, F, uv, tex)
     out = tmp_path_factory.mktemp("views") / "ds"
     return render_reference_views(mesh, out, n_views=3, resolution=(20, 16), spp=4)
