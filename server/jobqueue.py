@@ -106,23 +106,8 @@ def ensure_spectra(
     for _ in range(3):
         try:
             with db.write(lock=True) as s:
-                row = s.execute(
-                    select(SpectraRow).where(
-                        SpectraRow.mesh_hash == mesh_hash, SpectraRow.config_hash == config_hash
-                    )
-                ).scalar_one_or_none()
                 t = now()
-                if row is None:
-                    row = SpectraRow(
-                        id=new_id("spc"),
-                        mesh_hash=mesh_hash,
-                        config_hash=config_hash,
-                        config=config,
-                        state="missing",
-                        created_at=t,
-                        updated_at=t,
-                    )
-                    s.add(row)
+                row = spectra_row(s, mesh_hash, config_hash, config, t)
                 if row.state in ("missing", "failed"):
                     job = enqueue(
                         s,
@@ -140,6 +125,31 @@ def ensure_spectra(
         except IntegrityError:  # another process inserted the same key first: read theirs
             continue
     raise RuntimeError("could not create the spectra record")
+
+
+def spectra_row(
+    s: Session, mesh_hash: str, config_hash: str, config: dict[str, Any], t: float
+) -> SpectraRow:
+    """The spectra row of (mesh, config), added in state ``missing`` when there is none yet.
+    Concurrent creators meet at the unique key: the loser's flush raises IntegrityError and it
+    should retry and read the winner's row."""
+    row = s.execute(
+        select(SpectraRow).where(
+            SpectraRow.mesh_hash == mesh_hash, SpectraRow.config_hash == config_hash
+        )
+    ).scalar_one_or_none()
+    if row is None:
+        row = SpectraRow(
+            id=new_id("spc"),
+            mesh_hash=mesh_hash,
+            config_hash=config_hash,
+            config=config,
+            state="missing",
+            created_at=t,
+            updated_at=t,
+        )
+        s.add(row)
+    return row
 
 
 def claim(

@@ -373,23 +373,8 @@ def _adopt_cached(svc: ServiceState, mesh_hash: str, config) -> None:
     if not (path / "manifest.json").is_file():
         return
     with svc.db.write(lock=True) as s:
-        row = s.execute(
-            select(SpectraRow).where(
-                SpectraRow.mesh_hash == mesh_hash, SpectraRow.config_hash == config.key()
-            )
-        ).scalar_one_or_none()
         t = now()
-        if row is None:
-            row = SpectraRow(
-                id=new_id("spc"),
-                mesh_hash=mesh_hash,
-                config_hash=config.key(),
-                config=config.to_dict(),
-                state="missing",
-                created_at=t,
-                updated_at=t,
-            )
-            s.add(row)
+        row = jobqueue.spectra_row(s, mesh_hash, config.key(), config.to_dict(), t)
         if row.state in ("missing", "failed"):
             row.state, row.path, row.error, row.updated_at = "ready", svc.store.rel(path), None, t
             row.summary = row.summary or {"adopted_from_cache": True}
