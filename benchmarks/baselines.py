@@ -18,8 +18,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
-import platform
 import shlex
 import sys
 import time
@@ -27,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info
 from PIL import Image
 
 from hktex_engine.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
@@ -68,19 +67,6 @@ PUBLISHED = {
         "uv512": (381.6, 36.2), "uv1024": (1276.3, 41.1), "uv2048": (4091.2, 48.2),
     },
 }  # fmt: skip
-
-
-def _machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpu_count": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "numpy": np.__version__,
-        "torch": torch.__version__,
-        "load_average": os.getloadavg()[0],
-        "torch_threads": torch.get_num_threads(),
-    }
 
 
 def _score(mesh, method, samples) -> list[float]:
@@ -143,8 +129,8 @@ def write_markdown(result: dict, path: Path) -> None:
         "# Baselines (EVALUATION.md protocol)",
         "",
         f"Command: `{result['command']}`  ",
-        f"Machine: {result['machine']['platform']}, {result['machine']['cpu_count']} CPUs, "
-        f"load average {result['machine']['load_average']:.1f} at start  ",
+        f"Machine: {result['machine']['platform']}, {result['machine']['cpus']} CPUs, "
+        f"load average {result['machine']['load_average_1min']:.1f} at start  ",
         f"Surface PSNR: {result['points']} area-uniform points, seed 0; the spread column is the "
         f"standard deviation over seeds 0..{result['seeds'] - 1}. KiB = 1024 bytes.",
         "",
@@ -188,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     result = {
         "command": "python " + " ".join(shlex.quote(a) for a in sys.argv),
-        "machine": _machine(),
+        "machine": machine_info(),
         "points": args.points,
         "seeds": args.seeds,
         "meshes": [],

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import sys
 import time
@@ -30,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info
 
 from hktex_engine.geodesics import SurfaceTracer
 from hktex_engine.mesh import load_mesh
@@ -140,19 +139,6 @@ def run(kernels: int, repeats: int) -> dict:
     return {"rows": rows, "op_overhead": overhead}
 
 
-def machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "cpus": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-        "load_average_1min": os.getloadavg()[0],
-        "processor": platform.processor() or platform.machine(),
-        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-    }
-
-
 def write_results(out: Path, result: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "geodesics.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -201,7 +187,7 @@ def main(argv: list[str] | None = None) -> None:
     command = "python benchmarks/geodesics.py " + shlex.join(sys.argv[1:] if argv is None else argv)
     result = run(args.kernels, args.repeats)
     result.update(
-        command=command.strip(), machine=machine(), kernels=args.kernels, repeats=args.repeats
+        command=command.strip(), machine=machine_info(), kernels=args.kernels, repeats=args.repeats
     )
     write_results(args.out, result)
     print(f"wrote {args.out / 'geodesics.json'} and geodesics.md")

@@ -22,8 +22,6 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
-import platform
 import shlex
 import sys
 import tempfile
@@ -31,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _machine import machine_info
 from hktex_client import AsyncClient, Client
 from hktex_server.demo import spawned_service
 
@@ -157,17 +156,6 @@ def health_under_fits(url: str, mesh_id: str, duration: float) -> dict:
     }
 
 
-def machine() -> dict:
-    return {
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "cpus": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
-        "load_average_1m_at_start": round(os.getloadavg()[0], 2),
-        "note": "loopback; load generator and server share the machine's cores",
-    }
-
-
 def write_results(out: Path, result: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "service.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -178,7 +166,7 @@ def write_results(out: Path, result: dict) -> None:
         f"Command: `{result['command']}`  ",
         f"Machine: {result['machine']['platform']}, {result['machine']['cpus']} CPUs, "
         f"Python {result['machine']['python']}, load average at start "
-        f"{result['machine']['load_average_1m_at_start']} (other work on the machine)  ",
+        f"{result['machine']['load_average_1min']} (other work on the machine)  ",
         f"Date: {result['date']}",
         "",
         f"Kernel set: {result['kernelset']['kernels']} kernels on "
@@ -241,7 +229,9 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "command": command.strip(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        "machine": machine(),
+        "machine": machine_info(
+            note="loopback; load generator and server share the machine's cores"
+        ),
         "kernelset": ks_info,
         "queries": queries,
         "health_under_fits": health,

@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -32,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _machine import machine_info, machine_line
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -240,29 +239,12 @@ def run_child(kind: str, mesh: str, workdir: Path, args: argparse.Namespace) -> 
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def machine() -> dict:
-    cpu = "unknown"
-    for line in Path("/proc/cpuinfo").read_text().splitlines():
-        if line.startswith("model name"):
-            cpu = line.split(":", 1)[1].strip()
-            break
-    mem = Path("/proc/meminfo").read_text().splitlines()[0].split()[1]
-    return {
-        "nproc": os.cpu_count(),
-        "cpu": cpu,
-        "ram_gb": round(int(mem) / 2**20, 1),
-        "python": platform.python_version(),
-        "load_average_at_start": os.getloadavg(),
-        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS", "default"),
-    }
-
-
 def write_md(path: Path, result: dict) -> None:
     lines = [
         "# Spectra benchmark",
         "",
         f"Command: `{result['command']}`  ",
-        f"Machine: {result['machine']}  ",
+        f"Machine: {machine_line(result['machine'])}  ",
         f"Config: {result['config']}",
         "",
         "- *ours s*: wall time of `compute_spectra` (grid as listed; 'full grid est.' "
@@ -353,7 +335,7 @@ def main() -> None:
         return
     result = {
         "command": "python benchmarks/spectra.py " + " ".join(sys.argv[1:]),
-        "machine": machine(),
+        "machine": machine_info(),
         "config": {
             "angles": args.angles,
             "anisotropies": args.anisotropies,

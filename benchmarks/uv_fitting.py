@@ -22,8 +22,6 @@ import argparse
 import cProfile
 import io
 import json
-import os
-import platform
 import pstats
 import shlex
 import sys
@@ -32,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info, machine_line
 
 from hktex_engine.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
 from hktex_engine.config import FitParams, SpectralConfig
@@ -189,7 +188,7 @@ def write_md(out: Path, result: dict) -> None:
         "# UV fitting (Table 1 form)",
         "",
         f"Command: `{result['command']}`  ",
-        f"Machine: {result['machine']}  ",
+        f"Machine: {machine_line(result['machine'])}  ",
         f"Date: {result['date']}",
         "",
         "Surface PSNR on 60,000 area-uniform points (seed 0), texture values (sRGB) in [0, 1].",
@@ -265,11 +264,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
     torch.manual_seed(0)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     result = {
         "command": "python benchmarks/uv_fitting.py " + shlex.join(argv or sys.argv[1:]),
-        "machine": f"{platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__}, "
-        f"load average {load:.1f} at start",
+        "machine": machine_info(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "meshes": [],
     }
