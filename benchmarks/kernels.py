@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import platform
 import statistics
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -336,15 +336,7 @@ def main() -> None:
     t_init, query = timed(lambda: AlbedoQuery(spectra, ks, device="cpu"))
     res: dict = {
         "command": "python " + " ".join(sys.argv),
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor(),
-            "cpu_count": __import__("os").cpu_count(),
-            "torch_threads": torch.get_num_threads(),
-            "load_average_at_start": [round(x, 2) for x in __import__("os").getloadavg()],
-            "torch": torch.__version__,
-            "device": "cpu",
-        },
+        "machine": machine_info(device="cpu"),
         "setup": {
             "vertices": int(spectra.vertices.shape[0]),
             "faces": int(spectra.faces.shape[0]),
@@ -447,7 +439,7 @@ def million_only(res: dict, query: AlbedoQuery, spectra: Spectra, args, rng) -> 
     (args.out / "kernels_million.md").write_text(
         "# Kernel query memory for a million points (benchmarks/kernels.py --only-million)\n\n"
         f"Command: `{res['command']}`; machine as in kernels.md (load average at start "
-        f"{res['machine']['load_average_at_start']}, {res['machine']['torch_threads']} threads).\n"
+        f"{res['machine']['load_average_1min']}, {res['machine']['torch_threads']} threads).\n"
         f"Grid {s['grid_nodes']} nodes x K = {s['k']}, {s['vertices']} vertices, {s['kernels']} "
         f"kernels, K_s = {s['k_search']}, chunk {s['chunk_points']} points.\n\n"
         f"{m['points']} points in {m['seconds']} s ({m['points_per_s']} points/s); process RSS "
@@ -476,8 +468,8 @@ def render_md(res: dict) -> str:
         "# Kernel evaluation benchmark (benchmarks/kernels.py)",
         "",
         f"Command: `{res['command']}`  ",
-        f"Machine: {res['machine']['platform']}, {res['machine']['cpu_count']} CPU cores "
-        f"(shared with other jobs; load average at start {res['machine']['load_average_at_start']}), "
+        f"Machine: {res['machine']['platform']}, {res['machine']['cpus']} CPU cores "
+        f"(shared with other jobs; load average at start {res['machine']['load_average_1min']}), "
         f"torch {res['machine']['torch']}, {res['machine']['torch_threads']} "
         "threads, CPU only.",
         "",

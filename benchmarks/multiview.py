@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import sys
 import tempfile
@@ -34,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info
 
 from hktex_engine.baselines import _PositionalMLP
 from hktex_engine.config import FitParams, KernelConfig, SpectralConfig
@@ -302,14 +301,10 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "command": "python "
         + " ".join(shlex.quote(a) for a in [sys.argv[0], *(argv or sys.argv[1:])]),
-        "machine": {
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-            "torch": torch.__version__,
-            "mitsuba_variant": variant,
-            "cuda": torch.cuda.is_available(),
-            "note": "2 CPU cores shared with other jobs" if not torch.cuda.is_available() else "",
-        },
+        "machine": machine_info(
+            mitsuba_variant=variant,
+            note="2 CPU cores shared with other jobs" if not torch.cuda.is_available() else "",
+        ),
         "setup": {
             "mesh": mesh_name,
             "vertices": mesh.n_vertices,

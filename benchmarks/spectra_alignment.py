@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from _machine import machine_info
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -89,7 +89,7 @@ def main() -> None:
     aniso = tuple(float(x) for x in args.anisotropies.split(","))
     result = {
         "command": "python benchmarks/spectra_alignment.py " + " ".join(sys.argv[1:]),
-        "machine": {"nproc": os.cpu_count(), "load_average_at_start": os.getloadavg()},
+        "machine": machine_info(),
         "mesh": args.mesh,
         "n_vertices": mesh.n_vertices,
         "grid": {"angles": args.angles, "anisotropies": aniso, "k": args.k},

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import shlex
 import sys
 import time
@@ -28,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _machine import machine_info, machine_line
 
 from hktex_engine.config import FitParams, SpectralConfig
 from hktex_engine.fit_uv import fit_uv
@@ -145,13 +144,7 @@ def main(argv=None) -> None:
             rows += run_case("textured blob", blob, blob_spectra, params, args.eval_points)
     out = {
         "command": "python benchmarks/theta_transport.py " + shlex.join(sys.argv[1:]),
-        "machine": {
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-            "torch_threads": torch.get_num_threads(),
-            "load_average": os.getloadavg(),
-            "torch": torch.__version__,
-        },
+        "machine": machine_info(),
         "rows": rows,
     }
     res_dir = ROOT / "benchmarks" / "results"
@@ -161,7 +154,7 @@ def main(argv=None) -> None:
         "# Kernel orientation across faces: A/B",
         "",
         f"Command: `{out['command']}`  ",
-        f"Machine: {out['machine']}",
+        f"Machine: {machine_line(out['machine'])}",
         "",
         "| case | seed | steps | theta handling | PSNR dB | initial dB | kernels "
         "| face changes / kernel-step | s |",
