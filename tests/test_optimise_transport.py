@@ -44,6 +44,15 @@ def _random_frames(v: np.ndarray, f: np.ndarray, rng) -> np.ndarray:
     return r / np.linalg.norm(r, axis=1, keepdims=True)
 
 
+def _random_centres(v: np.ndarray, f: np.ndarray, rng, n: int):
+    """Random per-face frames and ``n`` kernel centres (face, barycentric, theta) on (v, f)."""
+    frames = _random_frames(v, f, rng)
+    fid = rng.integers(0, len(f), n)
+    bary = rng.dirichlet(np.ones(3), n)
+    theta = rng.uniform(0, math.pi, n)
+    return frames, fid, bary, theta
+
+
 def _setup(v, f, frames, fid, bary, theta, lr=1.0):
     """ToyModel + KernelOptimiser with frames; only centres take a step (lr_centers = lr)."""
     model = ToyModel(v, f, fid, bary)
@@ -88,11 +97,8 @@ def test_flat_patch_with_rotated_frames_keeps_3d_axes_and_adam_meaning():
     f = f.copy()
     f[1::3] = f[1::3, ::-1]  # a third of the faces wound the other way (normal -z)
     rng = np.random.default_rng(0)
-    frames = _random_frames(v, f, rng)
     n = 400
-    fid = rng.integers(0, len(f), n)
-    bary = rng.dirichlet(np.ones(3), n)
-    theta = rng.uniform(0, math.pi, n)
+    frames, fid, bary, theta = _random_centres(v, f, rng, n)
     theta[:4] = [0.0, math.pi, 0.0, math.pi]  # the ends of the range
     model, opt, verts, faces = _setup(v, f, frames, fid, bary, theta)
     normals = face_unit_normals(verts, faces)
@@ -144,11 +150,8 @@ def test_uniform_frames_keep_theta_continuous_at_the_range_ends():
 def test_cylinder_axis_follows_parallel_transport():
     v, f = cylinder(24, 9, radius=1.0, height=2.0)
     rng = np.random.default_rng(2)
-    frames = _random_frames(v, f, rng)
     n = 300
-    fid = rng.integers(0, len(f), n)
-    bary = rng.dirichlet(np.ones(3), n)
-    theta = rng.uniform(0, math.pi, n)
+    frames, fid, bary, theta = _random_centres(v, f, rng, n)
     model, opt, verts, faces = _setup(v, f, frames, fid, bary, theta)
     normals = face_unit_normals(verts, faces)
     z = torch.tensor([0.0, 0.0, 1.0], dtype=DT)
@@ -180,11 +183,8 @@ def _signed_angle(a, b, n):
 def test_sphere_axis_keeps_its_angle_to_the_geodesic():
     v, f = icosphere(2)
     rng = np.random.default_rng(3)
-    frames = _random_frames(v, f, rng)
     n = 300
-    fid = rng.integers(0, len(f), n)
-    bary = rng.dirichlet(np.ones(3), n)
-    theta = rng.uniform(0, math.pi, n)
+    frames, fid, bary, theta = _random_centres(v, f, rng, n)
     model, opt, verts, faces = _setup(v, f, frames, fid, bary, theta)
     normals = face_unit_normals(verts, faces)
     f0 = model.face_ids.clone()
