@@ -73,10 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     worker.set_defaults(func=cmd_worker)
 
     demo = subparsers.add_parser("demo", help="end-to-end demo through the service and client")
-    try:
-        from hktex_server.demo import register_demo_args
-    except ImportError:  # demo module not installed: the command explains itself when run
-        pass
-    else:
-        register_demo_args(demo)
+    from hktex_server.demo import register_demo_args
+
+    register_demo_args(demo)
     demo.set_defaults(func=cmd_demo)
