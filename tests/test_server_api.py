@@ -10,7 +10,6 @@ import zipfile
 import httpx
 import numpy as np
 import pytest
-from hktex_server import jobqueue
 from hktex_server.settings import Settings, is_loopback
 
 from tests.server_support import (
@@ -361,8 +360,3 @@ def test_cli_refuses_public_bind_without_tokens(tmp_path, capsys):
     rc = main(["serve", "--host", "0.0.0.0", "--data-dir", str(tmp_path)])
     assert rc == 2
     assert "refusing to bind" in capsys.readouterr().err
-
-
-def test_queue_depth_counts(server):
-    depth = jobqueue.queue_depth(server.db)
-    assert depth["queued"] >= 0 and depth["running"] >= 0

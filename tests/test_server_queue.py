@@ -374,3 +374,22 @@ def test_lost_lease_stops_the_worker(proc_backend):
         wait_for(lambda: jid not in sup.sup.children, 30, "the supervisor to forget it")
     row = job(db, jid)
     assert row.state == "running" and row.lease_token == "someone-else"  # untouched
+
+
+def test_queue_depth_counts_queued_and_running_jobs(backend):
+    """queue_depth against states set by hand: cancelling counts as running, final states and
+    cancelled-while-queued jobs count nowhere."""
+    _settings, db = backend
+    assert jobqueue.queue_depth(db) == {"queued": 0, "running": 0}
+    ids = [add_sleep_job(db, "alice") for _ in range(5)]
+    assert jobqueue.queue_depth(db) == {"queued": 5, "running": 0}
+    first = jobqueue.claim(db, "s", 30, 9, "cpu")
+    second = jobqueue.claim(db, "s", 30, 9, "cpu")
+    assert jobqueue.queue_depth(db) == {"queued": 3, "running": 2}
+    jobqueue.request_cancel(db, "alice", first.job_id)  # running -> cancelling
+    assert _state(db, first.job_id) == "cancelling"
+    assert jobqueue.queue_depth(db) == {"queued": 3, "running": 2}
+    jobqueue.finish(db, second.job_id, second.token, "succeeded")
+    queued = [i for i in ids if _state(db, i) == "queued"]
+    jobqueue.request_cancel(db, "alice", queued[0])  # queued -> cancelled at once
+    assert jobqueue.queue_depth(db) == {"queued": 2, "running": 1}
