@@ -95,10 +95,7 @@ async def upload_mesh(
         if mesh_part.size == 0:
             raise HTTPException(422, detail="the mesh file is empty")
         content_key = await run_in_threadpool(_content_key, mesh_part, texture_part, suffix)
-        with svc.db.read() as s:
-            existing = s.execute(
-                select(MeshRow).where(MeshRow.owner == owner, MeshRow.content_key == content_key)
-            ).scalar_one_or_none()
+        existing = _uploaded_before(svc, MeshRow, owner, content_key)
         if existing is not None:
             response.status_code = 200
             return mesh_record(existing)
@@ -113,6 +110,31 @@ async def upload_mesh(
         return mesh_record(row)
     finally:
         remove_parts(parts)
+
+
+def _uploaded_before(
+    svc: ServiceState, table: type[MeshRow] | type[ViewsRow], owner: str, content_key: str
+) -> MeshRow | ViewsRow | None:
+    """The owner's earlier upload of the same content (uploads are unique per owner and
+    content key), or None."""
+    with svc.db.read() as s:
+        return s.execute(
+            select(table).where(table.owner == owner, table.content_key == content_key)
+        ).scalar_one_or_none()
+
+
+def _insert_upload(svc: ServiceState, row: MeshRow | ViewsRow) -> tuple[MeshRow | ViewsRow, bool]:
+    """Insert an upload's row: (row, True); when a concurrent upload of the same content won
+    the unique key, (the winner's row, False)."""
+    try:
+        with svc.db.write() as s:
+            s.add(row)
+    except IntegrityError:
+        winner = _uploaded_before(svc, type(row), row.owner, row.content_key)
+        if winner is None:  # the conflict was another key: not a lost race
+            raise
+        return winner, False
+    return row, True
 
 
 def _content_key(mesh_part, texture_part, suffix: str) -> str:
@@ -190,16 +212,7 @@ def _store_mesh(
         },
         created_at=now(),
     )
-    try:
-        with svc.db.write() as s:
-            s.add(row)
-    except IntegrityError:  # a concurrent upload of the same content won: answer with it
-        with svc.db.read() as s:
-            row = s.execute(
-                select(MeshRow).where(MeshRow.owner == owner, MeshRow.content_key == content_key)
-            ).scalar_one()
-        return row, False
-    return row, True
+    return _insert_upload(svc, row)
 
 
 @router.get("/meshes", response_model=schemas.MeshList, responses=ERRORS)
@@ -451,10 +464,7 @@ async def upload_views(
             raise HTTPException(422, detail="the multipart body has no 'archive' file")
         archive = parts["archive"].path
         content_key = await run_in_threadpool(_digest, archive)
-        with svc.db.read() as s:
-            existing = s.execute(
-                select(ViewsRow).where(ViewsRow.owner == owner, ViewsRow.content_key == content_key)
-            ).scalar_one_or_none()
+        existing = _uploaded_before(svc, ViewsRow, owner, content_key)
         if existing is not None:
             response.status_code = 200
             return views_record(existing)
@@ -498,15 +508,7 @@ def _store_views(svc: ServiceState, owner: str, content_key: str, archive: Path)
         bytes=size,
         created_at=now(),
     )
-    try:
-        with svc.db.write() as s:
-            s.add(row)
-    except IntegrityError:
-        with svc.db.read() as s:
-            row = s.execute(
-                select(ViewsRow).where(ViewsRow.owner == owner, ViewsRow.content_key == content_key)
-            ).scalar_one()
-    return row
+    return _insert_upload(svc, row)[0]
 
 
 def _dataset_root(dest: Path) -> Path:
