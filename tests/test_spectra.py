@@ -136,16 +136,23 @@ def test_warm_solver_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs)
     assert methods[4:] == ["copy of node 0", "copy of node 1"]
 
 
+def _albo_problem(mesh, k: int, theta: float, eta: float):
+    """(L, M, lowest k isotropic eigenvalues) at one grid node, plus its exact lowest k pairs
+    by a cold ARPACK solve: the reference the faster solvers are checked against."""
+    from hktex_engine.operators import reference_tangent_field
+
+    V, F = mesh.vertices, mesh.faces
+    M = lumped_mass(V, F)
+    iso, _ = eigs_cold(cotangent_stiffness(V, F), M, k)
+    L = AlboAssembler(V, F, reference_tangent_field(V, F)).stiffness(theta, eta)
+    exact, exact_vecs = eigs_cold(L, M, k)
+    return L, M, iso, exact, exact_vecs
+
+
 def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
     from hktex_engine.eigensolver import eigs_lowest, estimate_lambda_k
 
-    V, F = mesh.vertices, mesh.faces
-    from hktex_engine.operators import reference_tangent_field
-
-    M = lumped_mass(V, F)
-    iso, _ = eigs_cold(cotangent_stiffness(V, F), M, 20)
-    L = AlboAssembler(V, F, reference_tangent_field(V, F)).stiffness(0.3, 30.0)
-    exact, _ = eigs_cold(L, M, 20)
+    L, M, iso, exact, _ = _albo_problem(mesh, 20, 0.3, 30.0)
     vals, vecs, method = eigs_lowest(L, M, 20, estimate_lambda_k(iso[-1], 30.0))
     assert method == "cold"
     np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
@@ -158,13 +165,8 @@ def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
 
 def test_spectrum_slicing_equals_one_solve(mesh):
     from hktex_engine.eigensolver import eigs_sliced, estimate_lambda_k
-    from hktex_engine.operators import reference_tangent_field
 
-    V, F = mesh.vertices, mesh.faces
-    M = lumped_mass(V, F)
-    iso, _ = eigs_cold(cotangent_stiffness(V, F), M, 80)
-    L = AlboAssembler(V, F, reference_tangent_field(V, F)).stiffness(1.2, 15.0)
-    exact, exact_vecs = eigs_cold(L, M, 80)
+    L, M, iso, exact, exact_vecs = _albo_problem(mesh, 80, 1.2, 15.0)
     vals, vecs, method = eigs_sliced(L, M, 80, estimate_lambda_k(iso[-1], 15.0))
     assert method == "sliced"
     np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
