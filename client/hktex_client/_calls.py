@@ -259,28 +259,28 @@ def albedo(
                 "barycentrics": rows[:, 1:].tolist(),
             }
             return Call("POST", path, _colors_from, json=body, headers=headers)
-        headers["Content-Type"] = NPY_MEDIA_TYPE
-        return Call(
-            "POST",
-            path,
-            _colors_from,
-            content=to_npy_bytes(rows),
-            headers=headers,
-            params={"kind": "faces"},
-        )
+        return _npy_albedo_call(path, rows, "faces", headers)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (P, 3); got {pts.shape}")
     if not binary:
         return Call("POST", path, _colors_from, json={"points": pts.tolist()}, headers=headers)
+    return _npy_albedo_call(path, pts, "points", headers)
+
+
+def _npy_albedo_call(
+    path: str, array: np.ndarray, kind: str, headers: dict[str, str]
+) -> Call[np.ndarray]:
+    """The binary form of an albedo query: the array as an NPY body, ``kind`` telling the
+    server how to read its rows (faces: face id + barycentrics; points: x, y, z)."""
     headers["Content-Type"] = NPY_MEDIA_TYPE
     return Call(
         "POST",
         path,
         _colors_from,
-        content=to_npy_bytes(pts),
+        content=to_npy_bytes(array),
         headers=headers,
-        params={"kind": "points"},
+        params={"kind": kind},
     )
 
 
