@@ -15,9 +15,14 @@ import importlib
 import json
 import pkgutil
 import sys
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from hktex_engine.errors import HKTexError
+
+if TYPE_CHECKING:
+    from hktex_engine.kernels import KernelSet
+    from hktex_engine.spectra import Spectra
 
 
 class TerminalProgress:
@@ -48,6 +53,21 @@ class TerminalProgress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
+
+
+def load_kernelset_with_spectra(kernels: Path, spectra_dir: Path) -> tuple[Spectra, KernelSet]:
+    """The spectra and a kernel set checked to belong to them (same mesh, same grid): where
+    ``render``, ``bake`` and ``query`` all start."""
+    from hktex_engine.hkt import load_hkt
+    from hktex_engine.spectra import load_spectra
+
+    if not kernels.is_file():
+        raise FileNotFoundError(f"kernel-set file not found: {kernels}")
+    spectra = load_spectra(spectra_dir)
+    kernelset = load_hkt(
+        kernels, expect_mesh_hash=spectra.mesh_hash, expect_config_hash=spectra.config_hash
+    )
+    return spectra, kernelset
 
 
 def _command_modules() -> list[Any]:

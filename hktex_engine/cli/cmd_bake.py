@@ -40,17 +40,10 @@ def run(args: argparse.Namespace) -> dict:
         write_obj,
         write_png,
     )
-    from hktex_engine.cli import TerminalProgress
-    from hktex_engine.hkt import load_hkt
+    from hktex_engine.cli import TerminalProgress, load_kernelset_with_spectra
     from hktex_engine.mesh import load_mesh
-    from hktex_engine.spectra import load_spectra
 
-    if not args.kernels.is_file():
-        raise FileNotFoundError(f"kernel-set file not found: {args.kernels}")
-    spectra = load_spectra(args.spectra)
-    kernelset = load_hkt(
-        args.kernels, expect_mesh_hash=spectra.mesh_hash, expect_config_hash=spectra.config_hash
-    )
+    spectra, kernelset = load_kernelset_with_spectra(args.kernels, args.spectra)
     mesh = load_mesh(args.mesh)
     progress = TerminalProgress("bake")
     start = time.perf_counter()

@@ -39,22 +39,15 @@ def _load_array(path: Path, what: str) -> np.ndarray:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from hktex_engine.cli import TerminalProgress
-    from hktex_engine.hkt import load_hkt
+    from hktex_engine.cli import TerminalProgress, load_kernelset_with_spectra
     from hktex_engine.query import AlbedoQuery
-    from hktex_engine.spectra import load_spectra
 
     by_points = args.points is not None
     if by_points == (args.faces is not None or args.barycentrics is not None):
         raise QueryError("give either --points, or both --faces and --barycentrics")
     if not by_points and (args.faces is None or args.barycentrics is None):
         raise QueryError("--faces and --barycentrics go together")
-    if not args.kernels.is_file():
-        raise FileNotFoundError(f"kernel-set file not found: {args.kernels}")
-    spectra = load_spectra(args.spectra)
-    kernelset = load_hkt(
-        args.kernels, expect_mesh_hash=spectra.mesh_hash, expect_config_hash=spectra.config_hash
-    )
+    spectra, kernelset = load_kernelset_with_spectra(args.kernels, args.spectra)
     inputs = (
         [_load_array(args.points, "points")]
         if by_points

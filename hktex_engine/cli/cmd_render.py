@@ -32,7 +32,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from hktex_engine.hkt import load_hkt
+    from hktex_engine.cli import load_kernelset_with_spectra
     from hktex_engine.render import (
         Lighting,
         RenderSettings,
@@ -41,18 +41,12 @@ def run(args: argparse.Namespace) -> dict:
         parse_view,
         render_kernelset,
     )
-    from hktex_engine.spectra import load_spectra
 
-    if not args.kernels.is_file():
-        raise FileNotFoundError(f"kernel-set file not found: {args.kernels}")
+    spectra, kernelset = load_kernelset_with_spectra(args.kernels, args.spectra)
     if args.envmap is not None and not args.envmap.is_file():
         raise FileNotFoundError(f"environment map not found: {args.envmap}")
     lighting = Lighting("envmap", envmap=str(args.envmap)) if args.envmap else Lighting()
     settings = RenderSettings(width=args.width, height=args.height, spp=args.spp, lighting=lighting)
-    spectra = load_spectra(args.spectra)
-    kernelset = load_hkt(
-        args.kernels, expect_mesh_hash=spectra.mesh_hash, expect_config_hash=spectra.config_hash
-    )
     camera = parse_view(args.view, file_frame_vertices(spectra), fov=args.fov)
     start = time.perf_counter()
     image = render_kernelset(spectra, kernelset, camera, settings, device=args.device)
