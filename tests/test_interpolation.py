@@ -3,22 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from hktex_engine import interpolation
 from hktex_engine.interpolation import SpectralField
-from tests.kernels_support import random_points, tiny_spectra
-
-
-@pytest.fixture(scope="module")
-def spectra():
-    return tiny_spectra()
-
-
-@pytest.fixture(scope="module")
-def field64(spectra):
-    return SpectralField(spectra, device="cpu", dtype=torch.float64)
+from tests.kernels_support import random_points
 
 
 def _numpy_bilinear(spectra, face_ids, bary, theta, s):

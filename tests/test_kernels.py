@@ -12,20 +12,10 @@ from hktex_engine import kernels as kernels_mod
 from hktex_engine.config import KernelConfig
 from hktex_engine.interpolation import SpectralField
 from hktex_engine.kernels import HeatKernelModel, KernelSet, soft_step
-from tests.kernels_support import random_kernels, random_points, tiny_spectra
+from tests.kernels_support import random_kernels, random_points
 
 # A tiny icosphere has few, broad modes: a longer time and wider decay give graded responses.
 CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=12, k_blend=4)
-
-
-@pytest.fixture(scope="module")
-def spectra():
-    return tiny_spectra()
-
-
-@pytest.fixture(scope="module")
-def field64(spectra):
-    return SpectralField(spectra, device="cpu", dtype=torch.float64)
 
 
 def make_params(spectra, n, seed=0):
