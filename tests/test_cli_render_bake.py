@@ -67,15 +67,9 @@ def test_cli_bake(files, capsys):
 
     root, obj, sdir, hkt = files
     out = root / "t.png"
+    bake = ["bake", str(hkt), "--spectra", str(sdir), "--mesh", str(obj), "-o", str(out)]
     argv = [
-        "bake",
-        str(hkt),
-        "--spectra",
-        str(sdir),
-        "--mesh",
-        str(obj),
-        "-o",
-        str(out),
+        *bake,
         "--resolution",
         "64",
         "--glb",
@@ -90,14 +84,7 @@ def test_cli_bake(files, capsys):
     assert np.asarray(Image.open(out)).shape == (64, 64, 3)
     assert (root / "t.glb").stat().st_size > 0 and (root / "t.mtl").is_file()
     vc = [
-        "bake",
-        str(hkt),
-        "--spectra",
-        str(sdir),
-        "--mesh",
-        str(obj),
-        "-o",
-        str(out),
+        *bake,
         "--resolution",
         "16",
         "--obj",
