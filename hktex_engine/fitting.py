@@ -17,12 +17,13 @@ the loop draws random numbers.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -87,6 +88,22 @@ class LoopResult:
         return self.steps_run / self.seconds if self.seconds > 0 else float("nan")
 
 
+@contextlib.contextmanager
+def _deterministic(enabled: bool) -> Iterator[None]:
+    """``torch.use_deterministic_algorithms`` (warn only) while the loop runs, when ``enabled``;
+    the caller's setting is restored afterwards either way."""
+    previous = (
+        torch.are_deterministic_algorithms_enabled(),
+        torch.is_deterministic_algorithms_warn_only_enabled(),
+    )
+    if enabled:
+        torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
+
+
 def run_fit(
     model: torch.nn.Module,
     objective: Objective,
@@ -122,113 +139,71 @@ def run_fit(
     spectral basis is a global field at angle theta from every face's u_ref), re-expressing
     makes it jump, and it measured worse (docs/fitting.md, "Orientation across faces").
     """
-    previous = (
-        torch.are_deterministic_algorithms_enabled(),
-        torch.is_deterministic_algorithms_warn_only_enabled(),
-    )
-    if deterministic and model.base_color.device.type == "cpu":
-        torch.use_deterministic_algorithms(True, warn_only=True)
-    try:
-        return _run_fit(
+    with _deterministic(deterministic and model.base_color.device.type == "cpu"):
+        rng = rng if rng is not None else np.random.default_rng(params.seed)
+        total = int(params.steps)
+        opt = KernelOptimiser(
             model,
-            objective,
             params,
             tracer,
             vertices,
             faces,
-            face_frames,
-            rng,
-            progress,
-            checkpoint_dir,
-            fingerprint,
-            momentum,
-            on_step,
-            transport_theta,
+            momentum=momentum,
+            face_frames=face_frames if transport_theta else None,
         )
-    finally:
-        torch.use_deterministic_algorithms(previous[0], warn_only=previous[1])
-
-
-def _run_fit(
-    model,
-    objective,
-    params,
-    tracer,
-    vertices,
-    faces,
-    face_frames,
-    rng,
-    progress,
-    checkpoint_dir,
-    fingerprint,
-    momentum,
-    on_step,
-    transport_theta=False,
-) -> LoopResult:
-    rng = rng if rng is not None else np.random.default_rng(params.seed)
-    total = int(params.steps)
-    opt = KernelOptimiser(
-        model,
-        params,
-        tracer,
-        vertices,
-        faces,
-        momentum=momentum,
-        face_frames=face_frames if transport_theta else None,
-    )
-    density = DensityController(
-        params, total, vertices, faces, face_frames, tracer, transport_theta=transport_theta
-    )
-    ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
-    fp = {"format": CHECKPOINT_FORMAT, **(fingerprint or {})}
-    start, resumed_from = 0, None
-    if ckpt is not None:
-        found = latest_checkpoint(ckpt)
-        if found is not None:
-            start = load_checkpoint(found, model, opt, density, rng, fp)
-            resumed_from = start
-            model.refresh()
-    density.bind(model)
-    result = LoopResult(steps=start, seconds=0.0, steps_run=0, resumed_from=resumed_from)
-    t0 = time.perf_counter()
-    last_report = -1.0
-    step = start
-    try:
-        while step < total:
-            check_cancel(progress)
-            batch = objective.sample(step, rng)
-            opt.zero_grad()
-            loss, stats = objective.loss(model, batch)
-            loss.backward()
-            density.record(stats)
-            opt.step(step)  # set_centres invalidates the model's KNN/centre caches itself
-            step += 1
-            loss_value = float(loss.detach())
-            # Drop the autograd graph before kernels are added or removed: a live graph keeps
-            # each parameter's gradient accumulator, which remembers the old row count.
-            del loss, stats, batch
-            if density.act(step, model, opt):
-                model.refresh()
-            result.losses.append(loss_value)
-            result.kernel_counts.append(int(model.face_ids.shape[0]))
-            if on_step is not None:
-                on_step(step, loss_value)
-            now = time.perf_counter()
-            if progress is not None and (now - last_report >= 1.0 or step == total):
-                progress.update(step, total, loss=loss_value, kernels=result.kernel_counts[-1])
-                last_report = now
-            if ckpt is not None and params.checkpoint_every > 0:
-                if step % params.checkpoint_every == 0 and step < total:
-                    save_checkpoint(ckpt, step, model, opt, density, rng, fp)
-    except Cancelled:
+        density = DensityController(
+            params, total, vertices, faces, face_frames, tracer, transport_theta=transport_theta
+        )
+        ckpt = Path(checkpoint_dir) if checkpoint_dir is not None else None
+        fp = {"format": CHECKPOINT_FORMAT, **(fingerprint or {})}
+        start, resumed_from = 0, None
         if ckpt is not None:
-            save_checkpoint(ckpt, step, model, opt, density, rng, fp)
-        raise
-    result.steps = step
-    result.density_events = list(density.events)
-    result.steps_run = step - start
-    result.seconds = time.perf_counter() - t0
-    return result
+            found = latest_checkpoint(ckpt)
+            if found is not None:
+                start = load_checkpoint(found, model, opt, density, rng, fp)
+                resumed_from = start
+                model.refresh()
+        density.bind(model)
+        result = LoopResult(steps=start, seconds=0.0, steps_run=0, resumed_from=resumed_from)
+        t0 = time.perf_counter()
+        last_report = -1.0
+        step = start
+        try:
+            while step < total:
+                check_cancel(progress)
+                batch = objective.sample(step, rng)
+                opt.zero_grad()
+                loss, stats = objective.loss(model, batch)
+                loss.backward()
+                density.record(stats)
+                opt.step(step)  # set_centres invalidates the model's KNN/centre caches itself
+                step += 1
+                loss_value = float(loss.detach())
+                # Drop the autograd graph before kernels are added or removed: a live graph keeps
+                # each parameter's gradient accumulator, which remembers the old row count.
+                del loss, stats, batch
+                if density.act(step, model, opt):
+                    model.refresh()
+                result.losses.append(loss_value)
+                result.kernel_counts.append(int(model.face_ids.shape[0]))
+                if on_step is not None:
+                    on_step(step, loss_value)
+                now = time.perf_counter()
+                if progress is not None and (now - last_report >= 1.0 or step == total):
+                    progress.update(step, total, loss=loss_value, kernels=result.kernel_counts[-1])
+                    last_report = now
+                if ckpt is not None and params.checkpoint_every > 0:
+                    if step % params.checkpoint_every == 0 and step < total:
+                        save_checkpoint(ckpt, step, model, opt, density, rng, fp)
+        except Cancelled:
+            if ckpt is not None:
+                save_checkpoint(ckpt, step, model, opt, density, rng, fp)
+            raise
+        result.steps = step
+        result.density_events = list(density.events)
+        result.steps_run = step - start
+        result.seconds = time.perf_counter() - t0
+        return result
 
 
 # --- checkpoints ----------------------------------------------------------------------------
