@@ -261,12 +261,9 @@ def fit_uv(
     }
     kernelset = model.to_kernelset(fitting={"task": "fit_uv", "steps": loop.steps})
     t3 = time.perf_counter()
-    try:
-        nbytes = kernelset_bytes(kernelset)
-        metrics["bytes_raw"], metrics["bytes_zip"] = nbytes["raw"], nbytes["zip"]
-        metrics["bytes_file"] = nbytes["file"]
-    except ImportError:  # hkt not importable: report no byte counts rather than guess them
-        pass
+    nbytes = kernelset_bytes(kernelset)
+    metrics["bytes_raw"], metrics["bytes_zip"] = nbytes["raw"], nbytes["zip"]
+    metrics["bytes_file"] = nbytes["file"]
     metrics["spectra_bytes"] = spectra_bytes(spectra)
     timings["bytes_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0

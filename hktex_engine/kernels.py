@@ -164,8 +164,8 @@ class HeatKernelModel(nn.Module):
     Parameters (``nn.Parameter``, rows = kernels): ``theta``, ``s`` (= ln(1 + eta), the grid
     coordinate; our choice of parameterisation, so Adam steps are relative in eta),
     ``threshold``, ``sharpness``, ``colors``, ``bary`` (centre barycentrics inside the buffer
-    ``face_ids``) and ``base_color``. :meth:`kernel_parameters` names them after the
-    ``FitParams.lr_*`` groups. Centres move only by geodesic steps: the optimiser reads
+    ``face_ids``) and ``base_color`` (``optimise.ATTRIBUTE_LRS`` maps them to their
+    ``FitParams.lr_*`` rates). Centres move only by geodesic steps: the optimiser reads
     :meth:`centre_tangent_grad`, traces, and writes back with :meth:`set_centres`.
 
     Density control changes the kernel count in place with :meth:`select` and :meth:`append`;
@@ -290,18 +290,6 @@ class HeatKernelModel(nn.Module):
     def eta(self) -> torch.Tensor:
         return torch.expm1(self.s)
 
-    def kernel_parameters(self) -> dict[str, nn.Parameter]:
-        """Parameters keyed by their ``FitParams.lr_<name>`` group."""
-        return {
-            "colors": self.colors,
-            "theta": self.theta,
-            "eta": self.s,
-            "threshold": self.threshold,
-            "sharpness": self.sharpness,
-            "base": self.base_color,
-            "centers": self.bary,
-        }
-
     @torch.no_grad()
     def project_(self) -> None:
         """Clamp every attribute into its range after an optimiser step."""
@@ -313,10 +301,6 @@ class HeatKernelModel(nn.Module):
         self.base_color.clamp_(*BASE_RANGE)
         self.bary.clamp_(min=0.0)
         self.bary.div_(self.bary.sum(dim=1, keepdim=True))
-
-    def centre_positions(self) -> torch.Tensor:
-        """Centres in the normalised frame (N, 3), differentiable through ``bary``."""
-        return self.field.positions(self.face_ids, self.bary)
 
     def centre_tangent_grad(self) -> torch.Tensor:
         """d loss / d centre position, in each centre's face plane (N, 3), from ``bary.grad``."""
