@@ -8,6 +8,11 @@ well under 3 minutes on one core:
     python benchmarks/uv_fit_probe.py prune               # what prune would remove at init
     python benchmarks/uv_fit_probe.py target              # fit targets == surface-PSNR targets
     python benchmarks/uv_fit_probe.py fit '{"densify": false}'   # FitParams overrides (JSON)
+    python benchmarks/uv_fit_probe.py fit '{}' --variant clone-offset   # A/B of density control
+
+``--variant`` patches density control for one run (an experiment, not a product option):
+``clone-offset`` traces each clone (1 - eps) * 0.2 along its long axis, one random side,
+as split children are traced (the parent stays); ``no-prune`` skips prune events.
 
 Fits default to 2000 -> 4000 kernels, 300 steps, 20,000 evaluation points.
 """
@@ -23,13 +28,14 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+import hktex_engine.density as density
 from hktex_engine.config import FitParams, SpectralConfig
 from hktex_engine.fit_uv import UVObjective, fit_uv, initial_kernelset
 from hktex_engine.interpolation import SpectralField
 from hktex_engine.kernels import HeatKernelModel
 from hktex_engine.mesh import load_mesh
 from hktex_engine.metrics import psnr, surface_samples
-from hktex_engine.optimise import tangent_gradient
+from hktex_engine.optimise import axis_pair, tangent_gradient, trace_on_surface
 from hktex_engine.sampling import points_from_barycentric, sample_surface
 from hktex_engine.spectra import compute_spectra, load_spectra, write_spectra
 
@@ -151,13 +157,42 @@ def probe_fit(mesh, spectra, overrides: dict) -> None:
     )
 
 
+def patch_density(variant: str) -> None:
+    """Swap one density-control step for the A/B runs of the investigation."""
+    if variant == "no-prune":
+        density.DensityController._prune = lambda self, model, opt: False
+    elif variant == "clone-offset":
+        exact = density.DensityController.new_rows
+
+        def offset_clones(self, model, clone, split):
+            out = exact(self, model, clone, split)
+            nc = clone.numel()
+            if nc == 0:
+                return out
+            f, b = model.face_ids.detach()[clone], model.bary.detach()[clone]
+            eps = model.threshold.detach()[clone]
+            axes = axis_pair(self.face_frames, self.face_normals, f, model.theta.detach()[clone])
+            gen = torch.Generator().manual_seed(nc)
+            sign = torch.where(torch.rand(nc, generator=gen) < 0.5, -1.0, 1.0).to(axes.dtype)
+            length = (1.0 - eps).to(axes.dtype) * self.rules.split_offset * sign
+            end_f, end_b, _ = trace_on_surface(self.tracer, f, b, length[:, None] * axes[:, 0])
+            out["face_ids"], out["bary"] = out["face_ids"].clone(), out["bary"].clone()
+            out["face_ids"][:nc], out["bary"][:nc] = end_f, end_b.to(out["bary"].dtype)
+            return out
+
+        density.DensityController.new_rows = offset_clones
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("probe", choices=("init", "grad", "prune", "target", "fit"))
     ap.add_argument("overrides", nargs="?", default="{}", help="FitParams JSON (fit)")
     ap.add_argument("--kernels", type=int, default=2000)
     ap.add_argument("--cache", type=Path, default=Path("/tmp/hktex_probe_spot_3x2x64"))
+    ap.add_argument("--variant", choices=("clone-offset", "no-prune"), default=None)
     args = ap.parse_args(argv)
+    if args.variant:
+        patch_density(args.variant)
     torch.set_num_threads(1)
     mesh, spectra = setup(args.cache)
     if args.probe == "init":
