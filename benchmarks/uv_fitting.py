@@ -119,7 +119,11 @@ def run_mesh(name: str, args) -> dict:
     spectra, spectra_s = _timed(compute_spectra, mesh, config)
     eval_f, eval_b, target = surface_samples(mesh, args.eval_points, 0)
     params = FitParams(
-        kernels=args.kernels, max_kernels=args.max_kernels, steps=args.steps, checkpoint_every=0
+        kernels=args.kernels,
+        max_kernels=args.max_kernels,
+        steps=args.steps,
+        checkpoint_every=0,
+        lr_centers=args.lr_centers,
     )
     res = fit_uv(mesh, spectra, params, eval_points=args.eval_points)
     # query time of the fitted set, same points as the baselines
@@ -251,6 +255,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kernels", type=int, default=2000)
     ap.add_argument("--max-kernels", type=int, default=4000)
     ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument(
+        "--lr-centers", type=float, default=FitParams().lr_centers, help="centre SGD rate"
+    )
     ap.add_argument("--angles", type=int, default=3)
     ap.add_argument(
         "--anisotropies", type=lambda s: tuple(float(x) for x in s.split(",")), default=(1.0, 15.0)
