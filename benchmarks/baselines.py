@@ -28,9 +28,9 @@ import torch
 from _machine import machine_info
 from PIL import Image
 
-from hktex_engine.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
-from hktex_engine.mesh import load_mesh
-from hktex_engine.metrics import psnr, storage_bytes, surface_samples
+from hktex_engine.evaluation.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
+from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
+from hktex_engine.geometry.mesh import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

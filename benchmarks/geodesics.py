@@ -30,9 +30,9 @@ import numpy as np
 import torch
 from _machine import machine_info
 
-from hktex_engine.geodesics import SurfaceTracer
-from hktex_engine.mesh import load_mesh
-from hktex_engine.synthetic import icosphere
+from hktex_engine.evaluation.synthetic import icosphere
+from hktex_engine.geometry.geodesics import SurfaceTracer
+from hktex_engine.geometry.mesh import load_mesh
 
 SPOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "spot" / "spot_triangulated.obj"
 STEPS = (0.001, 0.01, 0.05, 0.5)

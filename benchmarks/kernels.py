@@ -32,15 +32,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hktex_engine.config import KernelConfig, SpectralConfig  # noqa: E402
-from hktex_engine.eigensolver import eigs_cold  # noqa: E402
-from hktex_engine.hkt import hkt_bytes  # noqa: E402
-from hktex_engine.kernels import HeatKernelModel, KernelSet  # noqa: E402
-from hktex_engine.knn import CandidateSearch  # noqa: E402
-from hktex_engine.operators import cotangent_stiffness, lumped_mass  # noqa: E402
-from hktex_engine.query import AlbedoQuery  # noqa: E402
-from hktex_engine.sampling import sample_surface  # noqa: E402
-from hktex_engine.spectra import Spectra  # noqa: E402
-from hktex_engine.synthetic import torus  # noqa: E402
+from hktex_engine.evaluation.synthetic import torus  # noqa: E402
+from hktex_engine.geometry.operators import cotangent_stiffness, lumped_mass  # noqa: E402
+from hktex_engine.geometry.sampling import sample_surface  # noqa: E402
+from hktex_engine.kernels.hkt import hkt_bytes  # noqa: E402
+from hktex_engine.kernels.knn import CandidateSearch  # noqa: E402
+from hktex_engine.kernels.model import HeatKernelModel, KernelSet  # noqa: E402
+from hktex_engine.kernels.query import AlbedoQuery  # noqa: E402
+from hktex_engine.spectra.eigensolver import eigs_cold  # noqa: E402
+from hktex_engine.spectra.grid import Spectra  # noqa: E402
 
 
 def peak_rss_reset() -> None:

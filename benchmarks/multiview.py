@@ -11,7 +11,7 @@ views rendered from its UV texture (white environment, prb, max_depth 3), the la
 renderer, objective (tone-mapped L1 on masked pixels), crops, sample counts and step budget:
 HKTex (``fit_multiview``, density control on), per-vertex colours of the mesh (a float
 parameter per vertex, stored as uint8) and the positional-encoding MLP of
-``hktex_engine.baselines`` (stored as float16). Columns: PSNR / SSIM on the held-out views
+``hktex_engine.evaluation.baselines`` (stored as float16). Columns: PSNR / SSIM on the held-out views
 (masked, sRGB), render time of one ``--time-resolution``² view at ``--time-spp``, storage
 (zip bytes as EVALUATION.md counts them). Then the UV texture's own render time in the same
 run, for the HKTex / UV-texture ratio (paper: 784.7 ms vs 33.7 ms, ~23x, on a GPU).
@@ -34,22 +34,22 @@ import numpy as np
 import torch
 from _machine import machine_info
 
-from hktex_engine.baselines import _PositionalMLP
 from hktex_engine.config import FitParams, KernelConfig, SpectralConfig
-from hktex_engine.fit_multiview import (
+from hktex_engine.evaluation.baselines import _PositionalMLP
+from hktex_engine.evaluation.metrics import storage_bytes
+from hktex_engine.fitting.multiview import (
     MultiViewOptions,
     evaluate_views,
     file_frame_scene,
     fit_multiview,
     tonemap,
 )
-from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel
-from hktex_engine.mesh import load_mesh, mesh_from_arrays
-from hktex_engine.metrics import storage_bytes
-from hktex_engine.render import RenderScene, RenderSettings, ensure_variant, srgb_to_linear
-from hktex_engine.spectra import compute_spectra
-from hktex_engine.views import load_views, render_reference_views
+from hktex_engine.fitting.views import load_views, render_reference_views
+from hktex_engine.geometry.mesh import load_mesh, mesh_from_arrays
+from hktex_engine.kernels.model import HeatKernelModel
+from hktex_engine.render.mitsuba import RenderScene, RenderSettings, ensure_variant, srgb_to_linear
+from hktex_engine.spectra.grid import compute_spectra
+from hktex_engine.spectra.interpolation import SpectralField
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -64,7 +64,7 @@ def _mesh(name: str):
     if name in MESHES and DATA.is_dir():
         obj, tex = MESHES[name]
         return load_mesh(DATA / obj, texture=(DATA / tex) if tex else None), name
-    from hktex_engine.synthetic import textured_demo
+    from hktex_engine.evaluation.synthetic import textured_demo
 
     V, F, uv, tex = textured_demo(subdivisions=4, texture_size=256)
     return mesh_from_arrays(V, F, uv, tex, source_name="textured_demo"), "textured_demo"

@@ -39,7 +39,7 @@ FIT = {"kernels": 300, "max_kernels": 1200, "steps": 300, "seed": 0, "eval_point
 
 def fit_kernelset(url: str, work: Path) -> tuple[str, int, dict]:
     """Upload the demo blob and fit a small kernel set; returns (kernelset id, faces, info)."""
-    from hktex_engine.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.evaluation.synthetic import textured_demo, write_textured_obj
 
     v, f, uv, tex = textured_demo(subdivisions=4, texture_size=256)
     obj = write_textured_obj(work / "bench.obj", v, f, uv, tex)

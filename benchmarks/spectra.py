@@ -46,7 +46,7 @@ T_HEAT = 8.133e-4
 
 
 def load(name: str):
-    from hktex_engine.mesh import load_mesh, mesh_from_arrays
+    from hktex_engine.geometry.mesh import load_mesh, mesh_from_arrays
 
     mesh = load_mesh(DATA / MESHES[name])
     if name.endswith("_35k"):
@@ -97,7 +97,7 @@ def peak_mb() -> float:
 def child_ours(args: argparse.Namespace) -> dict:
     import gc
 
-    from hktex_engine.spectra import compute_spectra
+    from hktex_engine.spectra.grid import compute_spectra
 
     mesh = load(args.child_mesh)
     mesh.texture = None  # the spectra never need it; its decoding is not our memory
@@ -144,9 +144,14 @@ def _rel(a: np.ndarray, b: np.ndarray) -> float:
 def child_naive(args: argparse.Namespace) -> dict:
     """Paired timings (ours and naive on the same nodes, alternating, so the shared machine's
     load hits both alike) and accuracy of the stored nodes against the naive exact solve."""
-    from hktex_engine.eigensolver import eigs_cold, eigs_sliced, estimate_lambda_k, residuals
-    from hktex_engine.operators import AlboAssembler
-    from hktex_engine.spectra import load_spectra
+    from hktex_engine.geometry.operators import AlboAssembler
+    from hktex_engine.spectra.eigensolver import (
+        eigs_cold,
+        eigs_sliced,
+        estimate_lambda_k,
+        residuals,
+    )
+    from hktex_engine.spectra.grid import load_spectra
 
     sp = load_spectra(Path(args.workdir) / "spectra")
     reset_peak()

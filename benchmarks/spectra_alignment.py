@@ -25,10 +25,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from hktex_engine.config import SpectralConfig  # noqa: E402
-from hktex_engine.eigensolver import eigs_cold  # noqa: E402
-from hktex_engine.mesh import load_mesh  # noqa: E402
-from hktex_engine.operators import AlboAssembler  # noqa: E402
-from hktex_engine.spectra import compute_spectra  # noqa: E402
+from hktex_engine.geometry.mesh import load_mesh  # noqa: E402
+from hktex_engine.geometry.operators import AlboAssembler  # noqa: E402
+from hktex_engine.spectra.eigensolver import eigs_cold  # noqa: E402
+from hktex_engine.spectra.grid import compute_spectra  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 FILES = {"spot": "spot/spot_triangulated.obj", "bob": "bob/bob_tri.obj"}

@@ -29,11 +29,11 @@ import torch
 from _machine import machine_info, machine_line
 
 from hktex_engine.config import FitParams, SpectralConfig
-from hktex_engine.fit_uv import fit_uv
-from hktex_engine.mesh import mesh_from_arrays
-from hktex_engine.optimise import KernelOptimiser
-from hktex_engine.spectra import compute_spectra
-from hktex_engine.synthetic import icosphere, textured_demo
+from hktex_engine.evaluation.synthetic import icosphere, textured_demo
+from hktex_engine.fitting.optimise import KernelOptimiser
+from hktex_engine.fitting.uv import fit_uv
+from hktex_engine.geometry.mesh import mesh_from_arrays
+from hktex_engine.spectra.grid import compute_spectra
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)

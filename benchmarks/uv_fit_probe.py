@@ -28,16 +28,16 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-import hktex_engine.density as density
+import hktex_engine.fitting.density as density
 from hktex_engine.config import FitParams, SpectralConfig
-from hktex_engine.fit_uv import UVObjective, fit_uv, initial_kernelset
-from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel
-from hktex_engine.mesh import load_mesh
-from hktex_engine.metrics import psnr, surface_samples
-from hktex_engine.optimise import axis_pair, tangent_gradient, trace_on_surface
-from hktex_engine.sampling import points_from_barycentric, sample_surface
-from hktex_engine.spectra import compute_spectra, load_spectra, write_spectra
+from hktex_engine.evaluation.metrics import psnr, surface_samples
+from hktex_engine.fitting.optimise import axis_pair, tangent_gradient, trace_on_surface
+from hktex_engine.fitting.uv import UVObjective, fit_uv, initial_kernelset
+from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.geometry.sampling import points_from_barycentric, sample_surface
+from hktex_engine.kernels.model import HeatKernelModel
+from hktex_engine.spectra.grid import compute_spectra, load_spectra, write_spectra
+from hktex_engine.spectra.interpolation import SpectralField
 
 SPOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "spot"
 GRID = SpectralConfig(angles=3, anisotropies=(1.0, 30.0), k=64, k_iso=65)

@@ -6,7 +6,7 @@
 
 Per mesh (shared data, ../shared/data): spectra on the given grid, a UV fit with the given
 budget, then surface PSNR (EVALUATION.md protocol: 60,000 points, seed 0) and query time for
-HKTex and for the baselines of hktex_engine.baselines (vertex colours L0-L3, the UV texture at
+HKTex and for the baselines of hktex_engine.evaluation.baselines (vertex colours L0-L3, the UV texture at
 three sizes, the positional-encoding MLP trained on the same number of 512-point steps). SSIM
 needs rendered views; this table has none (the multi-view benchmark reports SSIM).
 
@@ -32,16 +32,16 @@ import numpy as np
 import torch
 from _machine import machine_info, machine_line
 
-from hktex_engine.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
 from hktex_engine.config import FitParams, SpectralConfig
-from hktex_engine.fit_uv import UVObjective, evaluate_albedo, fit_uv, initial_kernelset
-from hktex_engine.fitting import run_fit
-from hktex_engine.geodesics import SurfaceTracer
-from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel
-from hktex_engine.mesh import load_mesh
-from hktex_engine.metrics import psnr, surface_samples
-from hktex_engine.spectra import compute_spectra
+from hktex_engine.evaluation.baselines import MLPBaseline, UVTextureBaseline, VertexColorBaseline
+from hktex_engine.evaluation.metrics import psnr, surface_samples
+from hktex_engine.fitting.loop import run_fit
+from hktex_engine.fitting.uv import UVObjective, evaluate_albedo, fit_uv, initial_kernelset
+from hktex_engine.geometry.geodesics import SurfaceTracer
+from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.kernels.model import HeatKernelModel
+from hktex_engine.spectra.grid import compute_spectra
+from hktex_engine.spectra.interpolation import SpectralField
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"

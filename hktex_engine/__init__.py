@@ -2,7 +2,7 @@
 
 Modules are one concept each (see ARCHITECTURE.md in docs/). The public entry points are
 re-exported lazily by their modules; import what you need, e.g.
-``from hktex_engine.mesh import load_mesh``.
+``from hktex_engine.geometry.mesh import load_mesh``.
 """
 
 __version__ = "0.1.0"

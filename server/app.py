@@ -14,17 +14,18 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
-from hktex_server import jobqueue, schemas, validation
-from hktex_server.auth import current_owner
-from hktex_server.blobs import BlobStore
-from hktex_server.db import Database
-from hktex_server.querycache import QueryCache
-from hktex_server.routes_jobs import router as jobs_router
-from hktex_server.routes_kernelsets import router as kernelsets_router
-from hktex_server.routes_meshes import router as meshes_router
+from hktex_server.api import schemas, validation
+from hktex_server.api.auth import current_owner
+from hktex_server.api.jobs import router as jobs_router
+from hktex_server.api.kernelsets import router as kernelsets_router
+from hktex_server.api.meshes import router as meshes_router
+from hktex_server.api.querycache import QueryCache
+from hktex_server.jobs import queue as jobqueue
+from hktex_server.jobs.supervisor import SupervisorThread, detect_devices
 from hktex_server.settings import Settings
 from hktex_server.state import ServiceState, service
-from hktex_server.supervisor import SupervisorThread, detect_devices
+from hktex_server.storage.blobs import BlobStore
+from hktex_server.storage.db import Database
 
 
 def package_version() -> str:

@@ -38,7 +38,7 @@ def cmd_serve(args: argparse.Namespace) -> dict:
 
 
 def cmd_worker(args: argparse.Namespace) -> dict:
-    from hktex_server.supervisor import main_loop
+    from hktex_server.jobs.supervisor import main_loop
 
     settings = settings_from(args)
     if settings.workers < 1:

@@ -244,7 +244,7 @@ def spawned_service(
 
 def _make_mesh(args: argparse.Namespace, out: Path) -> tuple[Path, Path]:
     """The demo's own textured mesh, written as OBJ + MTL + PNG into ``out``."""
-    from hktex_engine.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.evaluation.synthetic import textured_demo, write_textured_obj
 
     vertices, faces, corner_uvs, texture = textured_demo(args.subdivisions, args.texture_size)
     obj = write_textured_obj(out / "demo_mesh.obj", vertices, faces, corner_uvs, texture)
@@ -282,8 +282,8 @@ def _png_size(data: bytes) -> tuple[int, int]:
 def _uv_reference_png(obj: Path, texture: Path, args: argparse.Namespace) -> bytes | None:
     """The same view rendered with the mesh's own UV texture (the thing being replaced)."""
     try:
-        from hktex_engine.mesh import load_mesh
-        from hktex_engine.render import Lighting, RenderSettings, encode_png, render_uv
+        from hktex_engine.geometry.mesh import load_mesh
+        from hktex_engine.render.mitsuba import Lighting, RenderSettings, encode_png, render_uv
     except ImportError:
         return None
     mesh = load_mesh(obj, texture=texture)
@@ -300,9 +300,9 @@ def _evaluate(client: Any, ks_id: str, obj: Path, texture: Path, n: int, seed: i
     loaded file are valid query locations; the point query goes through the service's
     closest-point path and must agree with the face query.
     """
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.metrics import psnr, surface_samples
-    from hktex_engine.sampling import points_from_barycentric
+    from hktex_engine.evaluation.metrics import psnr, surface_samples
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.geometry.sampling import points_from_barycentric
 
     mesh = load_mesh(obj, texture=texture)
     face_ids, bary, target = surface_samples(mesh, n, seed)
@@ -329,8 +329,8 @@ def _evaluate(client: Any, ks_id: str, obj: Path, texture: Path, n: int, seed: i
 
 def _baselines(mesh: Any, face_ids: np.ndarray, bary: np.ndarray, target: np.ndarray) -> list:
     """EVALUATION.md's baselines on the same samples: (name, zip bytes, surface PSNR)."""
-    from hktex_engine.baselines import UVTextureBaseline, VertexColorBaseline
-    from hktex_engine.metrics import psnr
+    from hktex_engine.evaluation.baselines import UVTextureBaseline, VertexColorBaseline
+    from hktex_engine.evaluation.metrics import psnr
 
     rows = [("mean colour", 3, psnr(np.broadcast_to(target.mean(0), target.shape), target))]
     for level in (0, 1, 2):
@@ -432,7 +432,7 @@ def run_demo(args: argparse.Namespace) -> dict:
 def _summary(
     args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info, threads
 ) -> dict:
-    from hktex_engine.metrics import storage_bytes
+    from hktex_engine.evaluation.metrics import storage_bytes
 
     hkt_bytes = storage_bytes(hkt)
     return {

@@ -6,10 +6,10 @@ import threading
 from dataclasses import dataclass, field
 
 from fastapi import Request
-from hktex_server.blobs import BlobStore
-from hktex_server.db import Database
-from hktex_server.querycache import QueryCache
+from hktex_server.api.querycache import QueryCache
 from hktex_server.settings import Settings
+from hktex_server.storage.blobs import BlobStore
+from hktex_server.storage.db import Database
 
 
 @dataclass

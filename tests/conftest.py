@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from hktex_engine.interpolation import SpectralField
+from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import tiny_spectra
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

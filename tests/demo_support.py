@@ -17,14 +17,14 @@ DEMO_CONFIG = SpectralConfig(angles=3, anisotropies=(1.0, 5.0), k=16, k_iso=9)
 
 def demo_arrays() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(vertices, faces, corner_uvs, texture) of the tiny textured demo sphere."""
-    from hktex_engine.synthetic import textured_demo
+    from hktex_engine.evaluation.synthetic import textured_demo
 
     return textured_demo(subdivisions=2, texture_size=32)
 
 
 def require_render() -> ModuleType:
     """The render module with its Mitsuba AD variant set; skips the test when there is none."""
-    from hktex_engine import render
+    from hktex_engine.render import mitsuba as render
 
     try:
         render.ensure_variant()
@@ -36,8 +36,8 @@ def require_render() -> ModuleType:
 def random_kernelset(spectra, n: int, seed: int = 0):
     """``n`` kernels at random surface points with random shapes and colours, bound to
     ``spectra`` (wide ranges of theta/eta/threshold so the bake sees varied kernels)."""
-    from hktex_engine.kernels import KernelSet
-    from hktex_engine.sampling import sample_surface
+    from hktex_engine.geometry.sampling import sample_surface
+    from hktex_engine.kernels.model import KernelSet
 
     rng = np.random.default_rng(seed)
     f, b = sample_surface(spectra.vertices, spectra.faces, n, rng)

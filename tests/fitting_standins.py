@@ -181,7 +181,7 @@ class ToyObjective:
         return torch.as_tensor(fid), torch.as_tensor(b)
 
     def loss(self, model, batch):
-        from hktex_engine.fitting import PointStats
+        from hktex_engine.fitting.loop import PointStats
 
         fid, b = batch
         pred, aux = model.albedo(fid, b, return_aux=True)

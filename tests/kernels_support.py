@@ -14,7 +14,7 @@ import scipy.linalg
 import trimesh
 
 from hktex_engine.config import SpectralConfig
-from hktex_engine.spectra import Spectra
+from hktex_engine.spectra.grid import Spectra
 
 TINY_CONFIG = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
 
@@ -84,8 +84,8 @@ def handmade_spectra(config: SpectralConfig = TINY_CONFIG, subdivisions: int = 2
 def tiny_spectra(subdivisions: int = 2) -> Spectra:
     """The spectra the kernel tests use (cached per process)."""
     try:
-        from hktex_engine.mesh import mesh_from_arrays
-        from hktex_engine.spectra import compute_spectra
+        from hktex_engine.geometry.mesh import mesh_from_arrays
+        from hktex_engine.spectra.grid import compute_spectra
     except ImportError:
         return handmade_spectra(TINY_CONFIG, subdivisions)
     v, f = tiny_mesh(subdivisions)

@@ -15,9 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from hktex_server import jobqueue
-from hktex_server.db import Database, JobRow
+from hktex_server.jobs import queue as jobqueue
 from hktex_server.settings import Settings
+from hktex_server.storage.db import Database, JobRow
 
 PG_URL = os.environ.get("HKTEX_TEST_PG_URL")
 BACKENDS = ["sqlite", pytest.param("postgres", marks=pytest.mark.postgres)]
@@ -111,7 +111,7 @@ def wait_for(pred: Callable[[], object], timeout: float = 30.0, what: str = "con
 
 class SupervisorInThread:
     def __init__(self, settings: Settings, name: str = "") -> None:
-        from hktex_server.supervisor import Supervisor
+        from hktex_server.jobs.supervisor import Supervisor
 
         self.sup = Supervisor(settings, name=name)
         self.stop_event = threading.Event()
@@ -130,7 +130,7 @@ def start_supervisor_process(settings: Settings) -> subprocess.Popen:
     env = os.environ.copy()
     env["HKTEX_WORKER_SETTINGS"] = settings.model_dump_json()
     return subprocess.Popen(
-        [sys.executable, "-m", "hktex_server.supervisor"],
+        [sys.executable, "-m", "hktex_server.jobs.supervisor"],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

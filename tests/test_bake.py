@@ -11,8 +11,8 @@ from tests.demo_support import DEMO_CONFIG, demo_arrays, random_kernelset
 
 @pytest.fixture(scope="module")
 def setup():
-    from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.spectra import compute_spectra
+    from hktex_engine.geometry.mesh import mesh_from_arrays
+    from hktex_engine.spectra.grid import compute_spectra
 
     V, F, uv, tex = demo_arrays()
     mesh = mesh_from_arrays(V * 2.0 + 0.5, F, uv, tex)
@@ -21,7 +21,7 @@ def setup():
 
 
 def test_rasterize_matches_bruteforce_point_in_triangle():
-    from hktex_engine.bake import rasterize_uv
+    from hktex_engine.render.bake import rasterize_uv
 
     rng = np.random.default_rng(3)
     uv = rng.random((6, 3, 2))
@@ -47,7 +47,7 @@ def test_rasterize_matches_bruteforce_point_in_triangle():
 
 
 def test_padding_fills_from_nearest():
-    from hktex_engine.bake import pad_texture
+    from hktex_engine.render.bake import pad_texture
 
     tex = np.zeros((5, 5, 3), np.float32)
     covered = np.zeros((5, 5), bool)
@@ -58,8 +58,8 @@ def test_padding_fills_from_nearest():
 
 
 def _baked_vs_query(mesh_uvs, texture, spectra, ks, n=2000):
-    from hktex_engine.query import AlbedoQuery
-    from hktex_engine.sampling import sample_surface, texture_lookup, uv_at
+    from hktex_engine.geometry.sampling import sample_surface, texture_lookup, uv_at
+    from hktex_engine.kernels.query import AlbedoQuery
 
     rng = np.random.default_rng(5)
     f, b = sample_surface(spectra.vertices, spectra.faces, n, rng)
@@ -68,8 +68,8 @@ def _baked_vs_query(mesh_uvs, texture, spectra, ks, n=2000):
 
 
 def test_baked_texture_matches_query_on_mesh_uvs(setup, tmp_path):
-    from hktex_engine.bake import bake_texture, textured_trimesh, write_glb
-    from hktex_engine.mesh import load_mesh
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.render.bake import bake_texture, textured_trimesh, write_glb
 
     mesh, spectra, ks = setup
     bake = bake_texture(spectra, ks, mesh, resolution=160)
@@ -93,8 +93,8 @@ def test_baked_texture_matches_query_on_mesh_uvs(setup, tmp_path):
 
 
 def test_xatlas_bake_and_obj(setup, tmp_path):
-    from hktex_engine.bake import bake_texture, write_obj
-    from hktex_engine.mesh import load_mesh
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.render.bake import bake_texture, write_obj
 
     mesh, spectra, ks = setup
     bake = bake_texture(spectra, ks, None, resolution=160)
@@ -110,8 +110,8 @@ def test_xatlas_bake_and_obj(setup, tmp_path):
 
 
 def test_vertex_colors_and_mesh_mismatch(setup):
-    from hktex_engine.bake import bake_texture, vertex_colors
-    from hktex_engine.query import AlbedoQuery
+    from hktex_engine.kernels.query import AlbedoQuery
+    from hktex_engine.render.bake import bake_texture, vertex_colors
 
     mesh, spectra, ks = setup
     vc = vertex_colors(spectra, ks)

@@ -13,10 +13,10 @@ from tests.demo_support import DEMO_CONFIG, demo_arrays, random_kernelset, requi
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    from hktex_engine.hkt import save_hkt
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.spectra import compute_spectra, write_spectra
-    from hktex_engine.synthetic import write_textured_obj
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.spectra.grid import compute_spectra, write_spectra
 
     root = tmp_path_factory.mktemp("cli")
     V, F, uv, tex = demo_arrays()

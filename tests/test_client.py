@@ -24,8 +24,8 @@ from hktex_client import (
     Unauthorized,
     ValidationFailed,
 )
+from hktex_server.api.schemas import FitParamsIn
 from hktex_server.demo import spawned_service
-from hktex_server.schemas import FitParamsIn
 
 ALICE, BOB = "tok-alice", "tok-bob"
 SPECTRAL = {"angles": 2, "anisotropies": [1.0, 10.0], "k": 8, "k_iso": 6}
@@ -51,7 +51,7 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 @pytest.fixture(scope="module")
 def mesh_files(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    from hktex_engine.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.evaluation.synthetic import textured_demo, write_textured_obj
 
     out = tmp_path_factory.mktemp("hktex-client-mesh")
     v, f, uv, tex = textured_demo(subdivisions=2, texture_size=64)
@@ -160,9 +160,9 @@ def _unpack(archive: Path, into: Path) -> Path:
 def test_npy_answers_equal_the_engine_on_the_downloaded_files(
     alice: Client, fitted: dict, tmp_path: Path
 ) -> None:
-    from hktex_engine.hkt import load_hkt
-    from hktex_engine.query import AlbedoQuery
-    from hktex_engine.spectra import load_spectra
+    from hktex_engine.kernels.hkt import load_hkt
+    from hktex_engine.kernels.query import AlbedoQuery
+    from hktex_engine.spectra.grid import load_spectra
 
     ks_id = fitted["job"].result.kernelset_id
     hkt = alice.download_kernelset(ks_id, tmp_path / "k.hkt")
@@ -191,8 +191,8 @@ def _same_colors(a: np.ndarray, b: np.ndarray) -> None:
 
 
 def test_point_queries_match_face_queries(alice: Client, fitted: dict, mesh_files) -> None:
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.sampling import points_from_barycentric, sample_surface
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.geometry.sampling import points_from_barycentric, sample_surface
 
     mesh = load_mesh(mesh_files[0], texture=mesh_files[1])
     faces, bary = sample_surface(mesh.vertices, mesh.faces, 200, 5)

@@ -250,7 +250,7 @@ def test_client_records_mirror_the_server_schemas(name: str) -> None:
     # The client cannot import the server (it must stay light), so its records are declared
     # twice; this is the check that the two declarations name the same fields.
     from hktex_client import models as client_models
-    from hktex_server import schemas as server_schemas
+    from hktex_server.api import schemas as server_schemas
 
     ours = set(getattr(client_models, name).model_fields)
     theirs = set(getattr(server_schemas, name).model_fields)
@@ -259,7 +259,7 @@ def test_client_records_mirror_the_server_schemas(name: str) -> None:
 
 def test_client_records_parse_a_server_record() -> None:
     from hktex_client.models import JobRecord as ClientJob
-    from hktex_server import schemas as server_schemas
+    from hktex_server.api import schemas as server_schemas
 
     record = server_schemas.JobRecord(
         id="job_1",

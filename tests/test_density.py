@@ -8,17 +8,17 @@ import numpy as np
 import torch
 
 from hktex_engine.config import FitParams
-from hktex_engine.density import (
+from hktex_engine.evaluation.synthetic import grid_patch
+from hktex_engine.fitting.density import (
     DensityController,
     DensityRules,
     densify_selection,
     prune_mask,
     schedule,
 )
-from hktex_engine.fitting import PointStats
-from hktex_engine.geodesics import SurfaceTracer
-from hktex_engine.optimise import KernelOptimiser
-from hktex_engine.synthetic import grid_patch
+from hktex_engine.fitting.loop import PointStats
+from hktex_engine.fitting.optimise import KernelOptimiser
+from hktex_engine.geometry.geodesics import SurfaceTracer
 from tests.fitting_standins import FlatTracer, ToyModel, flat_patch
 
 DT = torch.float64

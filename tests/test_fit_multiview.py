@@ -14,9 +14,9 @@ pytestmark = pytest.mark.mitsuba
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.spectra import compute_spectra
-    from hktex_engine.views import load_views, render_reference_views
+    from hktex_engine.fitting.views import load_views, render_reference_views
+    from hktex_engine.geometry.mesh import mesh_from_arrays
+    from hktex_engine.spectra.grid import compute_spectra
 
     require_render()
     V, F, uv, tex = demo_arrays()
@@ -31,7 +31,7 @@ def setup(tmp_path_factory):
 @pytest.mark.slow
 def test_fit_improves_held_out_psnr(setup):
     from hktex_engine.config import FitParams, KernelConfig
-    from hktex_engine.fit_multiview import MultiViewOptions, evaluate_kernelset, fit_multiview
+    from hktex_engine.fitting.multiview import MultiViewOptions, evaluate_kernelset, fit_multiview
 
     mesh, spectra, train, test = setup
     opts = MultiViewOptions(crop=24, spp=2)
@@ -59,13 +59,13 @@ def test_fit_improves_held_out_psnr(setup):
 
 def test_objective_stats_are_masked_primary_hits(setup):
     from hktex_engine.config import FitParams
-    from hktex_engine.fit_multiview import (
+    from hktex_engine.fitting.multiview import (
         MultiViewObjective,
         MultiViewOptions,
         file_frame_scene,
         initial_model,
     )
-    from hktex_engine.render import RenderSettings
+    from hktex_engine.render.mitsuba import RenderSettings
 
     mesh, spectra, train, _ = setup
     opts = MultiViewOptions(crop=12, spp=1)
@@ -89,7 +89,7 @@ def test_objective_stats_are_masked_primary_hits(setup):
 
 def test_refuses_foreign_spectra(setup):
     from hktex_engine.config import FitParams
-    from hktex_engine.fit_multiview import fit_multiview
+    from hktex_engine.fitting.multiview import fit_multiview
 
     mesh, spectra, train, _ = setup
     other = type(mesh)(**{**mesh.__dict__, "content_hash": "other"})
@@ -100,8 +100,8 @@ def test_refuses_foreign_spectra(setup):
 def test_render_gradient_reaches_kernel_base_color(setup):
     """d(render)/d(base colour) of the real kernel model through prb = finite difference."""
     from hktex_engine.config import FitParams
-    from hktex_engine.fit_multiview import MultiViewOptions, file_frame_scene, initial_model
-    from hktex_engine.render import RenderSettings
+    from hktex_engine.fitting.multiview import MultiViewOptions, file_frame_scene, initial_model
+    from hktex_engine.render.mitsuba import RenderSettings
 
     mesh, spectra, train, _ = setup
     init_scene = file_frame_scene(spectra, RenderSettings(width=24, height=24, spp=1))
@@ -138,7 +138,7 @@ def test_render_gradient_reaches_kernel_base_color(setup):
 @pytest.mark.slow
 def test_resume_from_checkpoint_reproduces_the_fit(setup, tmp_path):
     from hktex_engine.config import FitParams
-    from hktex_engine.fit_multiview import MultiViewOptions, fit_multiview
+    from hktex_engine.fitting.multiview import MultiViewOptions, fit_multiview
 
     mesh, spectra, train, _ = setup
     opts = MultiViewOptions(crop=16, spp=1)
@@ -165,9 +165,14 @@ def test_resume_from_checkpoint_reproduces_the_fit(setup, tmp_path):
 
 def test_constant_kernel_set_renders_like_constant_uv_texture(setup):
     """Colour-space consistency end to end: .hkt colours and texture files are both sRGB."""
-    from hktex_engine.kernels import KernelSet
-    from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.render import RenderSettings, orbit_camera, render_kernelset, render_uv
+    from hktex_engine.geometry.mesh import mesh_from_arrays
+    from hktex_engine.kernels.model import KernelSet
+    from hktex_engine.render.mitsuba import (
+        RenderSettings,
+        orbit_camera,
+        render_kernelset,
+        render_uv,
+    )
 
     mesh, spectra, _, _ = setup
     c = np.array([0.25, 0.55, 0.85])
@@ -199,7 +204,7 @@ def test_constant_kernel_set_renders_like_constant_uv_texture(setup):
 
 
 def test_tonemap_log_then_gamma():
-    from hktex_engine.fit_multiview import tonemap
+    from hktex_engine.fitting.multiview import tonemap
 
     x = torch.tensor([0.0, 0.2, 1.0, 4.0], requires_grad=True)
     y = tonemap(x)

@@ -9,12 +9,12 @@ import pytest
 
 from hktex_engine.config import FitParams, SpectralConfig
 from hktex_engine.errors import Cancelled, TextureError
-from hktex_engine.fit_uv import fit_uv, initial_kernelset, texture_gradient_energy
-from hktex_engine.fitting import latest_checkpoint
-from hktex_engine.mesh import mesh_from_arrays
-from hktex_engine.sampling import sample_surface, texture_lookup, uv_at
-from hktex_engine.spectra import compute_spectra
-from hktex_engine.synthetic import icosphere, textured_demo
+from hktex_engine.evaluation.synthetic import icosphere, textured_demo
+from hktex_engine.fitting.loop import latest_checkpoint
+from hktex_engine.fitting.uv import fit_uv, initial_kernelset, texture_gradient_energy
+from hktex_engine.geometry.mesh import mesh_from_arrays
+from hktex_engine.geometry.sampling import sample_surface, texture_lookup, uv_at
+from hktex_engine.spectra.grid import compute_spectra
 
 TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
 SLOW_PSNR = 19.0  # measured 21.2 dB (2026-11-22, 300 steps, 13 density events)
@@ -140,9 +140,9 @@ def test_untextured_mesh_is_refused(sphere):
 
 def test_cli_fit_writes_hkt_and_json(tmp_path, capsys, sphere):
     from hktex_engine.cli import main
-    from hktex_engine.hkt import load_hkt
-    from hktex_engine.spectra import write_spectra
-    from hktex_engine.synthetic import write_textured_obj
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+    from hktex_engine.kernels.hkt import load_hkt
+    from hktex_engine.spectra.grid import write_spectra
 
     mesh, spectra = sphere
     obj = write_textured_obj(tmp_path / "m.obj", *two_colour_arrays())
@@ -164,9 +164,9 @@ def test_tangent_gradient_agrees_with_the_kernel_models_own(sphere):
     """Two independent derivations (Gram system here, barycentric gradients in kernels.py)."""
     import torch
 
-    from hktex_engine.interpolation import SpectralField
-    from hktex_engine.kernels import HeatKernelModel
-    from hktex_engine.optimise import tangent_gradient
+    from hktex_engine.fitting.optimise import tangent_gradient
+    from hktex_engine.kernels.model import HeatKernelModel
+    from hktex_engine.spectra.interpolation import SpectralField
 
     mesh, spectra = sphere
     rng = np.random.default_rng(3)
@@ -187,12 +187,12 @@ def test_tangent_gradient_agrees_with_the_kernel_models_own(sphere):
 
 def test_cli_views_flag_calls_fit_multiview(tmp_path, capsys, sphere, monkeypatch):
     """--views hands over to fit_multiview (the renderer's task) with the CLI's params."""
-    import hktex_engine.fit_multiview as fmv
-    import hktex_engine.views as views_mod
+    import hktex_engine.fitting.multiview as fmv
+    import hktex_engine.fitting.views as views_mod
     from hktex_engine.cli import main
-    from hktex_engine.fit_uv import FitResult
-    from hktex_engine.spectra import write_spectra
-    from hktex_engine.synthetic import write_textured_obj
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+    from hktex_engine.fitting.uv import FitResult
+    from hktex_engine.spectra.grid import write_spectra
 
     mesh, spectra = sphere
     obj = write_textured_obj(tmp_path / "m.obj", *two_colour_arrays())

@@ -8,7 +8,7 @@ import torch
 
 from hktex_engine.config import FitParams
 from hktex_engine.errors import Cancelled
-from hktex_engine.fitting import CheckpointError, latest_checkpoint, run_fit
+from hktex_engine.fitting.loop import CheckpointError, latest_checkpoint, run_fit
 from tests.fitting_standins import FlatTracer, ToyModel, ToyObjective, flat_patch
 
 
@@ -62,7 +62,7 @@ def test_loop_learns_and_is_deterministic():
 
 
 def test_cancel_leaves_checkpoint_and_resume_matches(tmp_path, monkeypatch):
-    import hktex_engine.fitting as fitting
+    import hktex_engine.fitting.loop as fitting
 
     # report every step so the stop request lands at a known step
     monkeypatch.setattr(fitting.time, "perf_counter", _fake_clock())

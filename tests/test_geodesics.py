@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from hktex_engine import synthetic
 from hktex_engine.errors import DegenerateFacesError, NonManifoldError, QueryError
-from hktex_engine.geodesics import SurfaceTracer
+from hktex_engine.evaluation import synthetic
+from hktex_engine.geometry.geodesics import SurfaceTracer
 
 # ------------------------------------------------------------------ small test meshes
 
@@ -507,7 +507,7 @@ def test_start_on_boundary_vertex_moves_inward_and_stops_outward():
 def test_spot_matches_potpourri3d(shared_data):
     """A real, irregular mesh (merged by position, normalised): optimiser-sized and long steps."""
     pp3d = pytest.importorskip("potpourri3d")
-    from hktex_engine.mesh import load_mesh
+    from hktex_engine.geometry.mesh import load_mesh
 
     mesh = load_mesh(shared_data / "spot" / "spot_triangulated.obj")
     V, F = mesh.vertices, mesh.faces

@@ -11,8 +11,8 @@ import pytest
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
-from hktex_engine.hkt import hkt_bytes, load_hkt, save_hkt
-from hktex_engine.kernels import KernelSet
+from hktex_engine.kernels.hkt import hkt_bytes, load_hkt, save_hkt
+from hktex_engine.kernels.model import KernelSet
 
 
 def make_set(n=50, seed=0, n_faces=300):
@@ -172,7 +172,7 @@ def test_save_refuses_invalid_and_is_atomic(tmp_path):
 
 def test_compact_storage_changes_colours_little(tmp_path):
     """Measured effect of float16 members on albedo, on real (tiny) spectra."""
-    from hktex_engine.query import AlbedoQuery
+    from hktex_engine.kernels.query import AlbedoQuery
     from tests.kernels_support import random_kernels, random_points, tiny_spectra
 
     sp = tiny_spectra()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from hktex_engine import interpolation
-from hktex_engine.interpolation import SpectralField
+from hktex_engine.spectra import interpolation
+from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_points
 
 
@@ -116,7 +116,7 @@ def test_float16_storage_upcasts(spectra):
 
 
 def test_cpu_field_shares_a_memory_mapped_grid(spectra, tmp_path):
-    from hktex_engine.spectra import load_spectra, write_spectra
+    from hktex_engine.spectra.grid import load_spectra, write_spectra
 
     mapped = load_spectra(write_spectra(spectra, tmp_path / "s"), mmap=True)
     field = SpectralField(mapped, device="cpu", dtype=torch.float64)

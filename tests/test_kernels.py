@@ -8,10 +8,10 @@ import torch
 from scipy.interpolate import RegularGridInterpolator
 from scipy.special import expit
 
-from hktex_engine import kernels as kernels_mod
 from hktex_engine.config import KernelConfig
-from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel, KernelSet, soft_step
+from hktex_engine.kernels import model as kernels_mod
+from hktex_engine.kernels.model import HeatKernelModel, KernelSet, soft_step
+from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_kernels, random_points
 
 # A tiny icosphere has few, broad modes: a longer time and wider decay give graded responses.
@@ -310,7 +310,7 @@ def test_kernelset_round_trip(spectra, field64):
 
 
 def test_large_grad_batches_are_checkpointed_with_equal_gradients(spectra, field64, monkeypatch):
-    from hktex_engine import kernels
+    from hktex_engine.kernels import model as kernels
 
     kp = make_params(spectra, 8, seed=21)
     face_ids, bary = random_points(spectra, 16, seed=22)
@@ -337,7 +337,7 @@ def test_gradient_reaches_query_barycentrics(spectra, field64):
 
 @pytest.mark.parametrize("dense", [True, False])
 def test_vertex_pair_path_equals_node_matmul(spectra, field64, monkeypatch, dense):
-    from hktex_engine import kernels
+    from hktex_engine.kernels import model as kernels
 
     kp = make_params(spectra, 30, seed=25)
     model = make_model(field64, kp)

@@ -1,4 +1,4 @@
-"""Mesh loading, validation, normalisation and hashing (hktex_engine.mesh)."""
+"""Mesh loading, validation, normalisation and hashing (hktex_engine.geometry.mesh)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,13 @@ from hktex_engine.errors import (
     TooManyVerticesError,
     UnreadableMeshError,
 )
-from hktex_engine.mesh import load_mesh, load_texture, mesh_from_arrays, texture_hash
-from hktex_engine.synthetic import grid_patch, icosphere, textured_demo, write_textured_obj
+from hktex_engine.evaluation.synthetic import (
+    grid_patch,
+    icosphere,
+    textured_demo,
+    write_textured_obj,
+)
+from hktex_engine.geometry.mesh import load_mesh, load_texture, mesh_from_arrays, texture_hash
 
 # Two triangles of a unit square, a quad version, and a tetrahedron-like open fan.
 SQUARE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=float)
@@ -348,7 +353,7 @@ def test_gltf_cannot_reference_files_outside_its_folder(tmp_path):
 
 def test_fast_and_line_by_line_obj_readers_agree(tmp_path, monkeypatch):
     """A regular file takes the vectorised path; a trailing comment forces the line reader."""
-    import hktex_engine.mesh as mesh_module
+    import hktex_engine.geometry.mesh as mesh_module
 
     calls = []
     line_reader = mesh_module._parse_obj_lines

@@ -11,18 +11,23 @@ import pytest
 from PIL import Image
 from skimage.metrics import structural_similarity
 
-from hktex_engine.baselines import (
+from hktex_engine.errors import TextureError
+from hktex_engine.evaluation.baselines import (
     MLPBaseline,
     UVTextureBaseline,
     VertexColorBaseline,
     midpoint_subdivide,
     subdivided_location,
 )
-from hktex_engine.errors import TextureError
-from hktex_engine.mesh import load_mesh, mesh_from_arrays
-from hktex_engine.metrics import psnr, ssim, storage_bytes, surface_psnr, surface_samples
-from hktex_engine.sampling import points_from_barycentric, sample_surface, texture_lookup, uv_at
-from hktex_engine.synthetic import grid_patch, icosphere, textured_demo
+from hktex_engine.evaluation.metrics import psnr, ssim, storage_bytes, surface_psnr, surface_samples
+from hktex_engine.evaluation.synthetic import grid_patch, icosphere, textured_demo
+from hktex_engine.geometry.mesh import load_mesh, mesh_from_arrays
+from hktex_engine.geometry.sampling import (
+    points_from_barycentric,
+    sample_surface,
+    texture_lookup,
+    uv_at,
+)
 
 # --------------------------------------------------------------------------- PSNR / SSIM
 

@@ -90,7 +90,7 @@ def real_mesh_id(live_url: str, tmp_path_factory: pytest.TempPathFactory) -> str
     """A real mesh in the fuzzed service, so bodies naming it reach the deeper validation."""
     from hktex_client import Client
 
-    from hktex_engine.synthetic import icosphere, write_textured_obj
+    from hktex_engine.evaluation.synthetic import icosphere, write_textured_obj
 
     v, f = icosphere(1)
     obj = write_textured_obj(tmp_path_factory.mktemp("fuzz-mesh") / "ico.obj", v, f)

@@ -8,7 +8,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import expm_multiply
 
 from hktex_engine.errors import MeshError
-from hktex_engine.operators import (
+from hktex_engine.geometry.operators import (
     AlboAssembler,
     albo_stiffness,
     cotangent_stiffness,

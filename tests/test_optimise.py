@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from hktex_engine.config import FitParams
-from hktex_engine.geodesics import SurfaceTracer
-from hktex_engine.optimise import (
+from hktex_engine.evaluation.synthetic import grid_patch, icosphere
+from hktex_engine.fitting.optimise import (
     KernelOptimiser,
     RiemannianSGD,
     RowAdam,
@@ -18,7 +18,7 @@ from hktex_engine.optimise import (
     lr_factor,
     tangent_gradient,
 )
-from hktex_engine.synthetic import grid_patch, icosphere
+from hktex_engine.geometry.geodesics import SurfaceTracer
 from tests.fitting_standins import FlatTracer, ToyModel, flat_patch
 
 DT = torch.float64

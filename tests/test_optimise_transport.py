@@ -18,9 +18,9 @@ import pytest
 import torch
 
 from hktex_engine.config import FitParams
-from hktex_engine.density import DensityController
-from hktex_engine.geodesics import SurfaceTracer
-from hktex_engine.optimise import (
+from hktex_engine.evaluation.synthetic import cylinder, grid_patch, icosphere
+from hktex_engine.fitting.density import DensityController
+from hktex_engine.fitting.optimise import (
     KernelOptimiser,
     _AdamRows,
     axis_pair,
@@ -28,7 +28,7 @@ from hktex_engine.optimise import (
     long_axis,
     theta_in_faces,
 )
-from hktex_engine.synthetic import cylinder, grid_patch, icosphere
+from hktex_engine.geometry.geodesics import SurfaceTracer
 from tests.fitting_standins import FlatTracer, ToyModel, ToyObjective, flat_patch
 
 DT = torch.float64
@@ -291,7 +291,7 @@ def test_frames_need_a_tracer_that_transports():
 
 
 def test_fit_loop_keeps_theta_unless_asked(monkeypatch):
-    from hktex_engine import fitting
+    from hktex_engine.fitting import loop as fitting
 
     seen = []
     real = fitting.KernelOptimiser
@@ -321,9 +321,9 @@ def test_fit_loop_keeps_theta_unless_asked(monkeypatch):
 @pytest.fixture(scope="module")
 def real_model_parts():
     from hktex_engine.config import SpectralConfig
-    from hktex_engine.interpolation import SpectralField
-    from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.spectra import compute_spectra
+    from hktex_engine.geometry.mesh import mesh_from_arrays
+    from hktex_engine.spectra.grid import compute_spectra
+    from hktex_engine.spectra.interpolation import SpectralField
 
     v, f = icosphere(2)
     cfg = SpectralConfig(angles=5, anisotropies=(1.0, 30.0), k=16, k_iso=9)
@@ -339,8 +339,8 @@ def test_fixed_theta_kernel_is_continuous_across_an_edge_and_transport_jumps(rea
     across an edge at fixed theta changes its responses by O(h); re-expressing theta swaps
     the whole field for one rotated by the frames' difference, a jump that does not shrink.
     """
-    from hktex_engine.kernels import HeatKernelModel
-    from hktex_engine.sampling import sample_surface
+    from hktex_engine.geometry.sampling import sample_surface
+    from hktex_engine.kernels.model import HeatKernelModel
 
     sp, field = real_model_parts
     V = torch.as_tensor(np.array(sp.vertices), dtype=DT)

@@ -11,9 +11,9 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError, QueryError
-from hktex_engine.interpolation import SpectralField
-from hktex_engine.kernels import HeatKernelModel, KernelSet
-from hktex_engine.query import AlbedoQuery
+from hktex_engine.kernels.model import HeatKernelModel, KernelSet
+from hktex_engine.kernels.query import AlbedoQuery
+from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_kernels, random_points, tiny_spectra
 
 CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=10, k_blend=4)
@@ -147,8 +147,8 @@ def test_cli_query(tmp_path, spectra, kernelset, query, capsys):
     import json
 
     from hktex_engine.cli import main
-    from hktex_engine.hkt import save_hkt
-    from hktex_engine.spectra import write_spectra
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.spectra.grid import write_spectra
 
     sdir = write_spectra(spectra, tmp_path / "spectra")
     hkt = save_hkt(kernelset, tmp_path / "k.hkt", compact=False)

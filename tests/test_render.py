@@ -19,7 +19,7 @@ def R():
 
 @pytest.fixture(scope="module")
 def textured():
-    from hktex_engine.mesh import mesh_from_arrays
+    from hktex_engine.geometry.mesh import mesh_from_arrays
 
     V, F, uv, tex = demo_arrays()
     return mesh_from_arrays(V * 3.0 + 1.0, F, uv, tex)  # file units differ from normalised
@@ -42,7 +42,7 @@ def test_srgb_curves_roundtrip_and_known_values(R):
 
 def test_constant_albedo_furnace(R):
     """A convex diffuse object under unit white light shows its linear albedo exactly."""
-    from hktex_engine.synthetic import icosphere
+    from hktex_engine.evaluation.synthetic import icosphere
 
     V, F = icosphere(2)
     srgb = torch.tensor([0.8, 0.5, 0.2])
@@ -63,7 +63,7 @@ def test_constant_albedo_furnace(R):
 
 
 def test_uv_render_of_constant_texture_equals_constant_torch_albedo(R, textured):
-    from hktex_engine.mesh import mesh_from_arrays
+    from hktex_engine.geometry.mesh import mesh_from_arrays
 
     c = np.array([0.3, 0.6, 0.9], np.float32)
     mesh = mesh_from_arrays(
@@ -85,7 +85,7 @@ def test_uv_render_of_constant_texture_equals_constant_torch_albedo(R, textured)
 
 def test_uv_render_matches_torch_texture_lookup(R, textured):
     """The bitmap path (per-corner UVs, v flip, bilinear) equals our own lookup of the texture."""
-    from hktex_engine.sampling import texture_lookup, uv_at
+    from hktex_engine.geometry.sampling import texture_lookup, uv_at
 
     mesh = textured
     V = mesh.to_file_units(mesh.vertices)
@@ -120,7 +120,7 @@ def test_uv_render_matches_torch_texture_lookup(R, textured):
 
 
 def test_hit_buffer_locates_surface_points(R):
-    from hktex_engine.synthetic import icosphere
+    from hktex_engine.evaluation.synthetic import icosphere
 
     V, F = icosphere(1)
     scene = R.RenderScene(
@@ -141,7 +141,7 @@ def test_hit_buffer_locates_surface_points(R):
 
 
 def test_gradient_reaches_torch_parameter_matches_finite_difference(R):
-    from hktex_engine.synthetic import icosphere
+    from hktex_engine.evaluation.synthetic import icosphere
 
     V, F = icosphere(1)
     colors = torch.full((len(F), 3), 0.5, requires_grad=True)
@@ -196,7 +196,7 @@ def test_parse_view_and_png(R):
 def test_principled_and_envmap(R, tmp_path):
     import mitsuba as mi
 
-    from hktex_engine.synthetic import icosphere
+    from hktex_engine.evaluation.synthetic import icosphere
 
     V, F = icosphere(1)
     fn = lambda f, b: torch.full((len(f), 3), 0.6)  # noqa: E731

@@ -7,7 +7,8 @@ import pytest
 from scipy import ndimage, stats
 
 from hktex_engine.errors import QueryError
-from hktex_engine.sampling import (
+from hktex_engine.evaluation.synthetic import grid_patch, icosphere
+from hktex_engine.geometry.sampling import (
     closest_surface_point,
     face_areas,
     farthest_point_sampling,
@@ -16,7 +17,6 @@ from hktex_engine.sampling import (
     texture_lookup,
     uv_at,
 )
-from hktex_engine.synthetic import grid_patch, icosphere
 
 
 def uneven_patch():
@@ -163,6 +163,6 @@ def test_farthest_point_sampling_torch_path_agrees():
     a = farthest_point_sampling(points, 20, rng=1)
     b = farthest_point_sampling(torch.as_tensor(points), 20, rng=1)
     np.testing.assert_array_equal(a, b)
-    from hktex_engine.sampling import _fps_torch
+    from hktex_engine.geometry.sampling import _fps_torch
 
     np.testing.assert_array_equal(_fps_torch(torch.as_tensor(points), 20, int(a[0])), a)

@@ -30,7 +30,7 @@ BOB = {"Authorization": "Bearer tok-bob"}
 def mesh_files(tmp_path_factory):
     from PIL import Image
 
-    from hktex_engine.synthetic import grid_patch, textured_demo
+    from hktex_engine.evaluation.synthetic import grid_patch, textured_demo
 
     root = tmp_path_factory.mktemp("meshes")
     v, f = grid_patch(4, 4)
@@ -39,7 +39,7 @@ def mesh_files(tmp_path_factory):
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f]
     obj.write_text("\n".join(lines) + "\n")
     tv, tf, uvs, tex = textured_demo(subdivisions=1, texture_size=16)
-    from hktex_engine.synthetic import write_textured_obj
+    from hktex_engine.evaluation.synthetic import write_textured_obj
 
     textured = write_textured_obj(root / "blob.obj", tv, tf, uvs, tex)
     png = root / "blob_albedo.png"
@@ -215,7 +215,7 @@ def test_hostile_uploads(server, mesh_files):
 
 
 def _grid_obj(n: int) -> bytes:
-    from hktex_engine.synthetic import grid_patch
+    from hktex_engine.evaluation.synthetic import grid_patch
 
     v, f = grid_patch(n, n)
     lines = [f"v {x:.5f} {y:.5f} {z:.5f}" for x, y, z in v] + [

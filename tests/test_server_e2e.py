@@ -17,8 +17,8 @@ import pytest
 
 from tests.server_support import LiveServer, fast_settings, wait_for
 
-pytest.importorskip("hktex_engine.fit_uv")
-pytest.importorskip("hktex_engine.query")
+pytest.importorskip("hktex_engine.fitting.uv")
+pytest.importorskip("hktex_engine.kernels.query")
 
 SPECTRA = {"angles": 3, "anisotropies": [1, 5], "k": 16, "k_iso": 8}
 PARAMS = {
@@ -33,7 +33,7 @@ PARAMS = {
 
 @pytest.fixture(scope="module")
 def textured(tmp_path_factory):
-    from hktex_engine.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.evaluation.synthetic import textured_demo, write_textured_obj
 
     root = tmp_path_factory.mktemp("e2e")
     v, f, uvs, tex = textured_demo(subdivisions=2, texture_size=32)
@@ -42,10 +42,10 @@ def textured(tmp_path_factory):
 
 
 def test_upload_spectra_fit_query_download(tmp_path, textured):
-    from hktex_engine.hkt import load_hkt
-    from hktex_engine.query import AlbedoQuery
-    from hktex_engine.sampling import points_from_barycentric, sample_surface
-    from hktex_engine.spectra import load_spectra
+    from hktex_engine.geometry.sampling import points_from_barycentric, sample_surface
+    from hktex_engine.kernels.hkt import load_hkt
+    from hktex_engine.kernels.query import AlbedoQuery
+    from hktex_engine.spectra.grid import load_spectra
 
     obj, png = textured
     settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'hktex.db'}", workers=1)
@@ -147,8 +147,8 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
 @pytest.mark.slow
 def test_multiview_fit_through_the_service(tmp_path, textured):
     """Views rendered from the textured mesh, zipped, uploaded, fitted as a multi-view job."""
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.views import render_reference_views
+    from hktex_engine.fitting.views import render_reference_views
+    from hktex_engine.geometry.mesh import load_mesh
 
     obj, png = textured
     views_dir = render_reference_views(

@@ -11,8 +11,8 @@ import textwrap
 
 import httpx
 import pytest
-from hktex_server import schemas
-from hktex_server.db import JobRow, KernelSetRow, MeshRow, SpectraRow, new_id, now
+from hktex_server.api import schemas
+from hktex_server.storage.db import JobRow, KernelSetRow, MeshRow, SpectraRow, new_id, now
 from pydantic import ValidationError
 
 from tests.server_support import LiveServer, fast_settings, migrated
@@ -67,8 +67,8 @@ def test_json_integers_stay_valid_numbers() -> None:
 
 
 def test_job_record_serves_the_stage() -> None:
-    from hktex_server.records import job_record
-    from hktex_server.worker_main import progress_record
+    from hktex_server.api.records import job_record
+    from hktex_server.jobs.worker_main import progress_record
 
     progress = progress_record(3, 9, {"stage": "grid", "node": 1})
     row = JobRow(
@@ -95,8 +95,8 @@ def test_job_record_serves_the_stage() -> None:
 
 
 def test_worker_env_bounds_cpu_threads(tmp_path) -> None:
+    from hktex_server.jobs.supervisor import THREAD_VARS, worker_env
     from hktex_server.settings import Settings
-    from hktex_server.supervisor import THREAD_VARS, worker_env
 
     cores = len(os.sched_getaffinity(0))
     s = Settings(data_dir=tmp_path, workers=2 * cores, tokens="secret:alice")
@@ -124,9 +124,9 @@ def test_worker_env_bounds_cpu_threads(tmp_path) -> None:
 RENDER_ON_THREADS = textwrap.dedent(
     """
     import threading, numpy as np, torch
-    from hktex_engine import render as R
+    from hktex_engine.render import mitsuba as R
     from hktex_engine.errors import RenderError
-    from hktex_engine.synthetic import icosphere
+    from hktex_engine.evaluation.synthetic import icosphere
     try:
         R.ensure_variant()
     except RenderError:
@@ -177,7 +177,7 @@ def server(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def patch_obj(tmp_path_factory):
-    from hktex_engine.synthetic import grid_patch
+    from hktex_engine.evaluation.synthetic import grid_patch
 
     v, f = grid_patch(3, 3)
     obj = tmp_path_factory.mktemp("mesh") / "patch.obj"
@@ -217,7 +217,7 @@ def _add_kernelset(server, owner: str, mesh_id: str, spectra_id: str, content: b
     tmp = server.settings.data_dir / "tmp" / new_id("t")
     tmp.parent.mkdir(parents=True, exist_ok=True)
     tmp.write_bytes(content)
-    from hktex_server.blobs import BlobStore
+    from hktex_server.storage.blobs import BlobStore
 
     rel, _, size = BlobStore(server.settings.data_dir).publish_file(tmp, "kernelsets", ".hkt")
     ks = KernelSetRow(
@@ -340,13 +340,13 @@ def test_corrupt_deflate_stream_is_422_and_leaves_no_temp_dir(server) -> None:
 def test_validation_runs_in_a_killable_process(patch_obj, tmp_path) -> None:
     import multiprocessing
 
-    from hktex_server.validation import (
+    from hktex_server.api.validation import (
         InvalidMesh,
         ValidationTimeout,
         validate_mesh,
     )
 
-    from hktex_engine.mesh import load_mesh
+    from hktex_engine.geometry.mesh import load_mesh
 
     summary = validate_mesh(patch_obj, None, 5000, "obj", 120)
     mesh = load_mesh(patch_obj)
@@ -375,7 +375,7 @@ def test_upload_validation_timeout_is_422(tmp_path, patch_obj) -> None:
 
 
 def test_one_owners_cancel_of_shared_spectra_does_not_fail_anothers_fit(tmp_path) -> None:
-    from hktex_server import jobqueue
+    from hktex_server.jobs import queue as jobqueue
 
     settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'q.db'}")
     db = migrated(settings)
@@ -400,8 +400,8 @@ def test_one_owners_cancel_of_shared_spectra_does_not_fail_anothers_fit(tmp_path
 
 def test_worker_env_never_carries_api_tokens(tmp_path, monkeypatch) -> None:
     """Tokens set in the server's environment must not reach job processes."""
+    from hktex_server.jobs.supervisor import worker_env
     from hktex_server.settings import Settings
-    from hktex_server.supervisor import worker_env
 
     monkeypatch.setenv("HKTEX_TOKENS", "secret:alice")
     env = worker_env(Settings(data_dir=tmp_path), "cpu", "t")

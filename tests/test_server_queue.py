@@ -13,8 +13,8 @@ import time
 from collections import Counter
 
 import pytest
-from hktex_server import jobqueue
-from hktex_server.db import JobRow, SpectraRow
+from hktex_server.jobs import queue as jobqueue
+from hktex_server.storage.db import JobRow, SpectraRow
 
 from tests.server_support import (
     BACKENDS,
@@ -73,7 +73,7 @@ def test_concurrent_claims_never_hand_out_a_job_twice(backend, tmp_path):
     lock = threading.Lock()
 
     def claimer(name: str) -> None:
-        from hktex_server.db import Database
+        from hktex_server.storage.db import Database
 
         own_db = Database(settings.resolved_database_url())
         while (c := jobqueue.claim(own_db, name, 30, running_cap=1000, device="cpu")) is not None:
@@ -304,7 +304,7 @@ def test_failed_spectra_fail_their_fits(backend):
 
 
 def test_progress_writes_are_throttled(backend, monkeypatch):
-    from hktex_server import worker_main
+    from hktex_server.jobs import worker_main
 
     _settings, db = backend
     jid = add_sleep_job(db)
@@ -350,7 +350,7 @@ def test_migrations_match_the_models(backend):
     """A model change without its Alembic migration fails here (autogenerate finds a diff)."""
     from alembic.autogenerate import compare_metadata
     from alembic.migration import MigrationContext
-    from hktex_server.db import Base
+    from hktex_server.storage.db import Base
 
     _settings, db = backend
     db.migrate()  # idempotent: a second start finds the schema at head

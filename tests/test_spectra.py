@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hktex_engine import spectra as spectra_mod
-from hktex_engine.alignment import align_basis, eigen_clusters
 from hktex_engine.config import SpectralConfig
-from hktex_engine.eigensolver import eigs_cold, eigs_warm, residuals
 from hktex_engine.errors import Cancelled, SpectraError
-from hktex_engine.mesh import Mesh
-from hktex_engine.operators import AlboAssembler, cotangent_stiffness, lumped_mass
-from hktex_engine.spectra import (
+from hktex_engine.geometry.mesh import Mesh
+from hktex_engine.geometry.operators import AlboAssembler, cotangent_stiffness, lumped_mass
+from hktex_engine.spectra import grid as spectra_mod
+from hktex_engine.spectra.alignment import align_basis, eigen_clusters
+from hktex_engine.spectra.eigensolver import eigs_cold, eigs_warm, residuals
+from hktex_engine.spectra.grid import (
     SpectraCache,
     compute_spectra,
     load_spectra,
@@ -108,7 +108,7 @@ def test_node_spectra_equal_an_independent_dense_solve(mesh, tiny):
 
 def test_warm_solver_matches_cold_from_a_neighbour_start(mesh):
     V, F = mesh.vertices, mesh.faces
-    from hktex_engine.operators import reference_tangent_field
+    from hktex_engine.geometry.operators import reference_tangent_field
 
     asm = AlboAssembler(V, F, reference_tangent_field(V, F))
     M = lumped_mass(V, F)
@@ -139,7 +139,7 @@ def test_warm_solver_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs)
 def _albo_problem(mesh, k: int, theta: float, eta: float):
     """(L, M, lowest k isotropic eigenvalues) at one grid node, plus its exact lowest k pairs
     by a cold ARPACK solve: the reference the faster solvers are checked against."""
-    from hktex_engine.operators import reference_tangent_field
+    from hktex_engine.geometry.operators import reference_tangent_field
 
     V, F = mesh.vertices, mesh.faces
     M = lumped_mass(V, F)
@@ -150,7 +150,7 @@ def _albo_problem(mesh, k: int, theta: float, eta: float):
 
 
 def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
-    from hktex_engine.eigensolver import eigs_lowest, estimate_lambda_k
+    from hktex_engine.spectra.eigensolver import eigs_lowest, estimate_lambda_k
 
     L, M, iso, exact, _ = _albo_problem(mesh, 20, 0.3, 30.0)
     vals, vecs, method = eigs_lowest(L, M, 20, estimate_lambda_k(iso[-1], 30.0))
@@ -164,7 +164,7 @@ def test_mid_spectrum_shift_finds_the_lowest_pairs_or_falls_back(mesh):
 
 
 def test_spectrum_slicing_equals_one_solve(mesh):
-    from hktex_engine.eigensolver import eigs_sliced, estimate_lambda_k
+    from hktex_engine.spectra.eigensolver import eigs_sliced, estimate_lambda_k
 
     L, M, iso, exact, exact_vecs = _albo_problem(mesh, 80, 1.2, 15.0)
     vals, vecs, method = eigs_sliced(L, M, 80, estimate_lambda_k(iso[-1], 15.0))

@@ -18,8 +18,8 @@ pytestmark = pytest.mark.mitsuba
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
-    from hktex_engine.mesh import mesh_from_arrays
-    from hktex_engine.views import render_reference_views
+    from hktex_engine.fitting.views import render_reference_views
+    from hktex_engine.geometry.mesh import mesh_from_arrays
 
     require_render()
     V, F, uv, tex = demo_arrays()
@@ -41,7 +41,7 @@ def _edit(root: Path, fn) -> None:
 
 
 def test_roundtrip(dataset):
-    from hktex_engine.views import load_views
+    from hktex_engine.fitting.views import load_views
 
     views = load_views(dataset)
     assert len(views) == 3
@@ -56,8 +56,8 @@ def test_roundtrip(dataset):
 
 
 def test_origin_target_camera_equals_to_world(dataset, tmp_path):
-    from hktex_engine.render import look_at
-    from hktex_engine.views import load_views
+    from hktex_engine.fitting.views import load_views
+    from hktex_engine.render.mitsuba import look_at
 
     root = _copy(dataset, tmp_path)
     cam = look_at([0, 0, 5], [0, 0, 0], [0, 1, 0], fov=30)
@@ -82,7 +82,7 @@ def test_origin_target_camera_equals_to_world(dataset, tmp_path):
     ],
 )
 def test_bad_manifest(dataset, tmp_path, mutate, message):
-    from hktex_engine.views import load_views
+    from hktex_engine.fitting.views import load_views
 
     root = _copy(dataset, tmp_path)
     _edit(root, mutate)
@@ -91,7 +91,7 @@ def test_bad_manifest(dataset, tmp_path, mutate, message):
 
 
 def test_bad_files(dataset, tmp_path):
-    from hktex_engine.views import load_views
+    from hktex_engine.fitting.views import load_views
 
     with pytest.raises(ViewsError, match="does not exist"):
         load_views(tmp_path / "absent")

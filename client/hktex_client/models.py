@@ -1,6 +1,6 @@
 """Typed records of the HKTex REST API (INTERFACES.md section 4).
 
-These mirror the service's response schemas (``hktex_server.schemas``) but are declared here
+These mirror the service's response schemas (``hktex_server.api.schemas``) but are declared here
 again on purpose: the client must install without the server (no FastAPI, torch, scipy), so it
 cannot import them. Every model ignores unknown fields, so a newer server that adds a field
 does not break an older client; a field the client needs and the server lacks is a test

@@ -2,7 +2,8 @@
 
 Each subcommand lives in its own module named ``cmd_<name>.py`` in this package (engine
 commands) or in ``hktex_server.cli`` (serve, worker, demo) and exposes
-``register(subparsers) -> None``; the parser's ``func`` default is the handler, which takes the
+``register(subparsers) -> None``, found through the ``hktex.commands`` entry-point group of
+``pyproject.toml`` (so the engine names no module of the service); the parser's ``func`` default is the handler, which takes the
 parsed ``argparse.Namespace`` and returns a JSON-able summary dict. This module gives every
 command the same contract (INTERFACES.md section 3): ``--json`` prints a one-line summary on
 stdout, bad input exits non-zero with one line on stderr, a terminal shows a progress bar.
@@ -11,18 +12,18 @@ stdout, bad input exits non-zero with one line on stderr, a terminal shows a pro
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import pkgutil
 import sys
+from collections.abc import Callable
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from hktex_engine.errors import HKTexError
 
 if TYPE_CHECKING:
-    from hktex_engine.kernels import KernelSet
-    from hktex_engine.spectra import Spectra
+    from hktex_engine.kernels.model import KernelSet
+    from hktex_engine.spectra.grid import Spectra
 
 
 class TerminalProgress:
@@ -58,8 +59,8 @@ class TerminalProgress:
 def load_kernelset_with_spectra(kernels: Path, spectra_dir: Path) -> tuple[Spectra, KernelSet]:
     """The spectra and a kernel set checked to belong to them (same mesh, same grid): where
     ``render``, ``bake`` and ``query`` all start."""
-    from hktex_engine.hkt import load_hkt
-    from hktex_engine.spectra import load_spectra
+    from hktex_engine.kernels.hkt import load_hkt
+    from hktex_engine.spectra.grid import load_spectra
 
     if not kernels.is_file():
         raise FileNotFoundError(f"kernel-set file not found: {kernels}")
@@ -70,25 +71,19 @@ def load_kernelset_with_spectra(kernels: Path, spectra_dir: Path) -> tuple[Spect
     return spectra, kernelset
 
 
-def _command_modules() -> list[Any]:
-    modules = []
-    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
-        if info.name.startswith("cmd_"):
-            modules.append(importlib.import_module(f"{__name__}.{info.name}"))
-    try:  # the service's commands (serve, worker, demo) live with the service
-        modules.append(importlib.import_module("hktex_server.cli"))
-    except ModuleNotFoundError as exc:
-        if exc.name not in ("hktex_server", "hktex_server.cli"):
-            raise
-    return modules
+def _command_registrars() -> list[Callable[[Any], None]]:
+    """Every installed ``hktex.commands`` entry point, in name order: the engine's commands and
+    whatever else is installed beside it (the service adds serve, worker and demo)."""
+    found = sorted(entry_points(group="hktex.commands"), key=lambda ep: ep.name)
+    return [ep.load() for ep in found]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="hktex", description="Heat Kernel Textures")
     parser.add_argument("--json", action="store_true", help="print a one-line JSON summary")
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in _command_modules():
-        module.register(sub)
+    for register in _command_registrars():
+        register(sub)
     for subparser in sub.choices.values():  # `hktex CMD ... --json` works as well
         subparser.add_argument(
             "--json", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS

@@ -31,7 +31,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> dict:
-    from hktex_engine.bake import (
+    from hktex_engine.cli import TerminalProgress, load_kernelset_with_spectra
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.render.bake import (
         bake_texture,
         colored_trimesh,
         textured_trimesh,
@@ -40,8 +42,6 @@ def run(args: argparse.Namespace) -> dict:
         write_obj,
         write_png,
     )
-    from hktex_engine.cli import TerminalProgress, load_kernelset_with_spectra
-    from hktex_engine.mesh import load_mesh
 
     spectra, kernelset = load_kernelset_with_spectra(args.kernels, args.spectra)
     mesh = load_mesh(args.mesh)

@@ -70,9 +70,9 @@ def _params(args: argparse.Namespace) -> FitParams:
 
 def run(args: argparse.Namespace) -> dict:
     from hktex_engine.cli import TerminalProgress
-    from hktex_engine.hkt import save_hkt
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.spectra import SpectraCache, load_spectra
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.spectra.grid import SpectraCache, load_spectra
 
     params = _params(args)
     if not args.mesh.is_file():
@@ -100,8 +100,8 @@ def run(args: argparse.Namespace) -> dict:
     try:
         if args.views is not None:
             # multi-view fitting lives with the renderer (Mitsuba); import only when asked
-            from hktex_engine.fit_multiview import fit_multiview
-            from hktex_engine.views import load_views
+            from hktex_engine.fitting.multiview import fit_multiview
+            from hktex_engine.fitting.views import load_views
 
             result = fit_multiview(
                 mesh,
@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> dict:
             )
             task = "fit_multiview"
         else:
-            from hktex_engine.fit_uv import fit_uv
+            from hktex_engine.fitting.uv import fit_uv
 
             result = fit_uv(
                 mesh, spectra, params, bar, args.checkpoint_dir, args.device, args.eval_points

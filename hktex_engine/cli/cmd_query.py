@@ -40,7 +40,7 @@ def _load_array(path: Path, what: str) -> np.ndarray:
 
 def run(args: argparse.Namespace) -> dict:
     from hktex_engine.cli import TerminalProgress, load_kernelset_with_spectra
-    from hktex_engine.query import AlbedoQuery
+    from hktex_engine.kernels.query import AlbedoQuery
 
     by_points = args.points is not None
     if by_points == (args.faces is not None or args.barycentrics is not None):

@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from hktex_engine.cli import load_kernelset_with_spectra
-    from hktex_engine.render import (
+    from hktex_engine.render.mitsuba import (
         Lighting,
         RenderSettings,
         encode_png,

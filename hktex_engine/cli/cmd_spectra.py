@@ -67,8 +67,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> dict:
     from hktex_engine.cli import TerminalProgress
-    from hktex_engine.mesh import load_mesh
-    from hktex_engine.spectra import compute_spectra
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.spectra.grid import compute_spectra
 
     config = SpectralConfig(
         angles=args.angles,

@@ -1,0 +1,733 @@
+"""Kernel sets and their evaluation (ALGORITHM.md sections 4 and 5).
+
+:class:`KernelSet` is the plain numpy record a ``.hkt`` file holds. :class:`HeatKernelModel`
+holds the same kernels as torch parameters on a device and evaluates albedo at surface points:
+
+    h_j(y) = sum_k exp(-t lambda_k) phi_k(c_j) phi_k(y)      spectrum at (theta_j, s_j)
+    w_j(y) = exp(-d_B(c_j, y)^2 / (2 sigma_B^2))
+    r_j(y) = h_j(y) w_j(y) / h_j(c_j)
+    rho_j(y) = S(r_j(y); eps_j, k_j)
+    albedo(y) = clamp(a_0 + sum_{top K_c} rho_j a_j / max(1, sum rho_j), 0, 1)
+
+Evaluation for P points and K_s candidates each: the point's eigenfunctions on every grid node
+``Phi_y`` (P, G, K) come from three contiguous vertex rows; each kernel's spectral coefficients
+``coef_j = exp(-t lambda^j) * phi^j(c_j)`` (K,) are per kernel; one batched matmul gives
+``coef_j . Phi_y[g]`` for all G nodes and the four bilinear nodes of kernel j are picked from
+it. That trades G/4 times more multiply-adds than strictly needed for dense BLAS instead of a
+(P, K_s, 4, K) gather, which measured slower (docs/kernels.md, "Decisions").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import partial
+
+import numpy as np
+import torch
+from torch import nn
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.errors import KernelSetError
+from hktex_engine.kernels.knn import CandidateSearch
+from hktex_engine.spectra.interpolation import RowCache, SpectralField
+
+THETA_RANGE = (0.0, math.pi)
+ETA_RANGE = (1.0, 200.0)
+#: The threshold's range is [0.3, 1); projection keeps it a hair below 1.
+THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
+SHARPNESS_RANGE = (10.0, 200.0)
+COLOR_RANGE = (-1.0, 1.0)
+BASE_RANGE = (0.0, 1.0)
+#: How ``h_j(y)`` is computed without gradients: "auto" picks per batch between the node
+#: matmul ("bmm") and shared (vertex, kernel) pairs ("vertex"); see ``_h_by_vertex_pairs``.
+PAIR_PATH = "auto"
+#: Relative cost of one gathered eigenvector row against one matmul row (measured, see docs).
+VERTEX_PATH_COST = 24
+#: (vertex, kernel) pairs per gathered block in the vertex path.
+PAIR_CHUNK = 16384
+#: Points per checkpointed chunk when a differentiable batch is larger than this.
+GRAD_CHUNK_POINTS = 1024
+#: Bytes the training path may keep of the centres' gathered eigenvector rows between steps
+#: (12 K per kernel: 123 MB for 10k kernels at K = 256 float32); above it they are gathered
+#: each step.
+ROWS_CACHE_BYTES = 256 * 2**20
+#: Extra nearest centres fetched before the exact per-pair cut to ``K_s`` (see ``_exact_cut``).
+KNN_MARGIN = 8
+#: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
+BARY_TOL = 1e-3
+
+
+@dataclass
+class KernelSet:
+    """A kernel set as stored in a ``.hkt`` file (INTERFACES.md section 2), numpy arrays."""
+
+    face_ids: np.ndarray  # (N,) int64, faces of the normalised mesh
+    barycentrics: np.ndarray  # (N, 3), rows sum to one
+    theta: np.ndarray  # (N,) in [0, pi]
+    eta: np.ndarray  # (N,) in [1, 200]
+    threshold: np.ndarray  # (N,) in [0.3, 1)
+    sharpness: np.ndarray  # (N,) in [10, 200]
+    colors: np.ndarray  # (N, 3) residuals in [-1, 1]
+    base_color: np.ndarray  # (3,) in [0, 1]
+    kernel_config: KernelConfig = field(default_factory=KernelConfig)
+    mesh_hash: str = ""
+    config_hash: str = ""
+    color_space: str = "srgb"
+    fitting: dict = field(default_factory=dict)
+    extras: dict = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(np.asarray(self.face_ids).shape[0])
+
+    def validate(self, n_faces: int | None = None) -> None:
+        """Raise :class:`KernelSetError` unless shapes, ranges and finiteness all hold."""
+        n = len(self)
+        shapes = {
+            "face_ids": (n,),
+            "barycentrics": (n, 3),
+            "theta": (n,),
+            "eta": (n,),
+            "threshold": (n,),
+            "sharpness": (n,),
+            "colors": (n, 3),
+            "base_color": (3,),
+        }
+        for name, shape in shapes.items():
+            arr = np.asarray(getattr(self, name))
+            if arr.shape != shape:
+                raise KernelSetError(f"member {name!r} has shape {arr.shape}, expected {shape}")
+            if arr.dtype.kind not in "biuf":
+                raise KernelSetError(f"member {name!r} has non-numeric dtype {arr.dtype}")
+            if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+                raise KernelSetError(f"member {name!r} contains NaN or infinity")
+        if n == 0:
+            raise KernelSetError("the kernel set is empty")
+        if np.asarray(self.face_ids).dtype.kind == "f":
+            raise KernelSetError("member 'face_ids' must be integers")
+        fid = np.asarray(self.face_ids)
+        if fid.min() < 0 or (n_faces is not None and fid.max() >= n_faces):
+            raise KernelSetError(
+                f"face ids out of range [0, {n_faces if n_faces is not None else 'inf'})"
+            )
+        bary = np.asarray(self.barycentrics, dtype=np.float64)
+        if bary.min() < -BARY_TOL or np.abs(bary.sum(axis=1) - 1).max() > BARY_TOL:
+            raise KernelSetError("barycentrics must be non-negative rows summing to one")
+        eps = 1e-3  # float16 storage rounds the range ends by less than this (relative)
+        _check_range("theta", self.theta, THETA_RANGE[0] - eps, THETA_RANGE[1] + eps)
+        _check_range("eta", self.eta, ETA_RANGE[0] * (1 - eps), ETA_RANGE[1] * (1 + eps))
+        _check_range("threshold", self.threshold, THRESHOLD_RANGE[0] - eps, 1.0 - 1e-7)
+        _check_range(
+            "sharpness",
+            self.sharpness,
+            SHARPNESS_RANGE[0] * (1 - eps),
+            SHARPNESS_RANGE[1] * (1 + eps),
+        )
+        _check_range("colors", self.colors, COLOR_RANGE[0] - eps, COLOR_RANGE[1] + eps)
+        _check_range("base_color", self.base_color, BASE_RANGE[0] - eps, BASE_RANGE[1] + eps)
+
+
+def _check_range(name: str, values: np.ndarray, lo: float, hi: float) -> None:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.size and (arr.min() < lo or arr.max() > hi):
+        raise KernelSetError(
+            f"member {name!r} out of range: [{arr.min():.6g}, {arr.max():.6g}] not in "
+            f"[{lo:.6g}, {hi:.6g}]"
+        )
+
+
+def soft_step(x: torch.Tensor, eps: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """``S(x; eps, k)``: a sigmoid rescaled so S(0) = 0 and S(1) = 1, clamped to [0, 1]."""
+    low = torch.sigmoid(-k * eps)
+    high = torch.sigmoid(k * (1 - eps))
+    return torch.clamp((torch.sigmoid(k * (x - eps)) - low) / (high - low), 0.0, 1.0)
+
+
+def barycentric_gradients(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Gradient of each corner's barycentric coordinate in its face plane: (m, 3, 3).
+
+    ``grad b_i = n x (p_{i+2} - p_{i+1}) / (2 A)``. A loss gradient over barycentrics
+    ``g_b`` becomes the 3-D tangent gradient ``sum_i g_b[i] grad b_i``; the part of ``g_b``
+    along (1, 1, 1) (which would leave the surface) drops out because the three sum to zero.
+    """
+    p = vertices[faces]  # (m, 3, 3)
+    cross = torch.linalg.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    double_area = torch.linalg.norm(cross, dim=1, keepdim=True)
+    normal = cross / double_area
+    edges = torch.roll(p, shifts=-2, dims=1) - torch.roll(p, shifts=-1, dims=1)  # p_{i+2}-p_{i+1}
+    return torch.linalg.cross(normal[:, None, :].expand_as(edges), edges) / double_area[:, None, :]
+
+
+class HeatKernelModel(nn.Module):
+    """Kernel parameters on a device; albedo at surface points (ALGORITHM.md 4-5).
+
+    Parameters (``nn.Parameter``, rows = kernels): ``theta``, ``s`` (= ln(1 + eta), the grid
+    coordinate; our choice of parameterisation, so Adam steps are relative in eta),
+    ``threshold``, ``sharpness``, ``colors``, ``bary`` (centre barycentrics inside the buffer
+    ``face_ids``) and ``base_color`` (``optimise.ATTRIBUTE_LRS`` maps them to their
+    ``FitParams.lr_*`` rates). Centres move only by geodesic steps: the optimiser reads
+    :meth:`centre_tangent_grad`, traces, and writes back with :meth:`set_centres`.
+
+    Density control changes the kernel count in place with :meth:`select` and :meth:`append`;
+    the Parameter objects keep their identity (their ``.data`` is replaced), so an optimiser
+    built on them stays valid once its per-parameter state is re-indexed the same way.
+
+    Cached state (per-kernel spectral coefficients for no-grad queries, the KNN index over centre
+    embeddings) is rebuilt automatically when any parameter changed in place since it was built
+    (tracked through tensor version counters) and by :meth:`refresh`.
+    """
+
+    def __init__(
+        self,
+        field: SpectralField,
+        face_ids: torch.Tensor | np.ndarray,
+        bary: torch.Tensor | np.ndarray,
+        theta: torch.Tensor | np.ndarray,
+        eta: torch.Tensor | np.ndarray,
+        threshold: torch.Tensor | np.ndarray,
+        sharpness: torch.Tensor | np.ndarray,
+        colors: torch.Tensor | np.ndarray,
+        base_color: torch.Tensor | np.ndarray,
+        config: KernelConfig | None = None,
+        knn_backend: str = "auto",
+    ) -> None:
+        super().__init__()
+        self.field = field
+        self.config = config or KernelConfig()
+        self.knn_backend = knn_backend
+        dev, dt = field.device, field.dtype
+        self.register_buffer("face_ids", _long(face_ids, dev))
+        self.bary = nn.Parameter(_float(bary, dev, dt))
+        self.theta = nn.Parameter(_float(theta, dev, dt))
+        self.s = nn.Parameter(torch.log1p(_float(eta, dev, dt)))
+        self.threshold = nn.Parameter(_float(threshold, dev, dt))
+        self.sharpness = nn.Parameter(_float(sharpness, dev, dt))
+        self.colors = nn.Parameter(_float(colors, dev, dt))
+        self.base_color = nn.Parameter(_float(base_color, dev, dt))
+        self._check_shapes()
+        self._generation = 0
+        self._cache_key: tuple | None = None
+        self._knn_key: tuple | None = None
+        self._rows = RowCache(ROWS_CACHE_BYTES)
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_kernelset(
+        cls, kernelset: KernelSet, field: SpectralField, knn_backend: str = "auto"
+    ) -> HeatKernelModel:
+        """A model of ``kernelset`` on ``field``'s device; refuses another mesh or grid."""
+        spectra = field.spectra
+        if kernelset.mesh_hash and kernelset.mesh_hash != spectra.mesh_hash:
+            raise KernelSetError("the kernel set was fitted on another mesh")
+        if kernelset.config_hash and kernelset.config_hash != spectra.config_hash:
+            raise KernelSetError("the kernel set was fitted with another spectral config")
+        kernelset.validate(n_faces=field.n_faces)
+        bary = np.asarray(kernelset.barycentrics, dtype=np.float64)
+        bary = np.clip(bary, 0.0, None)
+        bary = bary / bary.sum(axis=1, keepdims=True)  # undo float16 rounding of the rows
+        return cls(
+            field,
+            np.asarray(kernelset.face_ids, dtype=np.int64),
+            bary,
+            np.asarray(kernelset.theta, dtype=np.float64),
+            np.asarray(kernelset.eta, dtype=np.float64),
+            np.asarray(kernelset.threshold, dtype=np.float64),
+            np.asarray(kernelset.sharpness, dtype=np.float64),
+            np.asarray(kernelset.colors, dtype=np.float64),
+            np.asarray(kernelset.base_color, dtype=np.float64),
+            config=kernelset.kernel_config,
+            knn_backend=knn_backend,
+        )
+
+    def to_kernelset(
+        self, color_space: str = "srgb", fitting: dict | None = None, extras: dict | None = None
+    ) -> KernelSet:
+        """The parameters as a numpy :class:`KernelSet` tagged with this mesh and grid."""
+
+        def np_(t: torch.Tensor) -> np.ndarray:
+            return t.detach().cpu().numpy()
+
+        return KernelSet(
+            face_ids=np_(self.face_ids).astype(np.int64),
+            barycentrics=np_(self.bary).astype(np.float64),
+            theta=np_(self.theta).astype(np.float64),
+            eta=np_(torch.expm1(self.s)).astype(np.float64),
+            threshold=np_(self.threshold).astype(np.float64),
+            sharpness=np_(self.sharpness).astype(np.float64),
+            colors=np_(self.colors).astype(np.float64),
+            base_color=np_(self.base_color).astype(np.float64),
+            kernel_config=self.config,
+            mesh_hash=self.field.spectra.mesh_hash,
+            config_hash=self.field.spectra.config_hash,
+            color_space=color_space,
+            fitting=dict(fitting or {}),
+            extras=dict(extras or {}),
+        )
+
+    def _check_shapes(self) -> None:
+        n = self.face_ids.shape[0]
+        expect = {
+            "bary": (n, 3),
+            "theta": (n,),
+            "s": (n,),
+            "threshold": (n,),
+            "sharpness": (n,),
+            "colors": (n, 3),
+            "base_color": (3,),
+        }
+        for name, shape in expect.items():
+            got = tuple(getattr(self, name).shape)
+            if got != shape:
+                raise KernelSetError(f"kernel parameter {name!r} has shape {got}, expected {shape}")
+        if n and (self.face_ids.min() < 0 or self.face_ids.max() >= self.field.n_faces):
+            raise KernelSetError("kernel centre face ids out of range")
+
+    # ----------------------------------------------------------------- parameters
+    def __len__(self) -> int:
+        return int(self.face_ids.shape[0])
+
+    @property
+    def eta(self) -> torch.Tensor:
+        return torch.expm1(self.s)
+
+    @torch.no_grad()
+    def project_(self) -> None:
+        """Clamp every attribute into its range after an optimiser step."""
+        self.theta.clamp_(*THETA_RANGE)
+        self.s.clamp_(math.log1p(ETA_RANGE[0]), math.log1p(ETA_RANGE[1]))
+        self.threshold.clamp_(*THRESHOLD_RANGE)
+        self.sharpness.clamp_(*SHARPNESS_RANGE)
+        self.colors.clamp_(*COLOR_RANGE)
+        self.base_color.clamp_(*BASE_RANGE)
+        self.bary.clamp_(min=0.0)
+        self.bary.div_(self.bary.sum(dim=1, keepdim=True))
+
+    def centre_tangent_grad(self) -> torch.Tensor:
+        """d loss / d centre position, in each centre's face plane (N, 3), from ``bary.grad``."""
+        if self.bary.grad is None:
+            return torch.zeros_like(self.bary)
+        grads = barycentric_gradients(self.field.vertices, self.field.faces[self.face_ids])
+        return torch.einsum("nv,nvd->nd", self.bary.grad, grads)
+
+    @torch.no_grad()
+    def set_centres(self, face_ids: torch.Tensor, bary: torch.Tensor) -> None:
+        """Move centres (after a geodesic step); the caches follow on next use."""
+        self.face_ids = _long(face_ids, self.field.device)
+        self.bary.data = _float(bary, self.field.device, self.field.dtype)
+        self._generation += 1
+        self._check_shapes()
+
+    @torch.no_grad()
+    def select(self, indices: torch.Tensor | np.ndarray) -> HeatKernelModel:
+        """Keep only the kernels at ``indices`` (in that order; repeats clone), in place."""
+        idx = _long(indices, self.field.device)
+        self.face_ids = self.face_ids[idx]
+        for p in self._row_params():
+            p.data = p.data[idx]
+            p.grad = None
+        self._generation += 1
+        self._check_shapes()
+        return self
+
+    @torch.no_grad()
+    def append(
+        self,
+        face_ids: torch.Tensor | np.ndarray,
+        bary: torch.Tensor | np.ndarray,
+        theta: torch.Tensor | np.ndarray,
+        eta: torch.Tensor | np.ndarray,
+        threshold: torch.Tensor | np.ndarray,
+        sharpness: torch.Tensor | np.ndarray,
+        colors: torch.Tensor | np.ndarray,
+    ) -> HeatKernelModel:
+        """Add kernels at the end (``eta`` in natural units), in place."""
+        dev, dt = self.field.device, self.field.dtype
+        self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
+        new = [bary, theta, torch.log1p(_float(eta, dev, dt)), threshold, sharpness, colors]
+        for p, rows in zip(self._row_params(), new, strict=True):
+            p.data = torch.cat([p.data, _float(rows, dev, dt)])
+            p.grad = None
+        self._generation += 1
+        self._check_shapes()
+        return self
+
+    def _row_params(self) -> list[nn.Parameter]:
+        return [self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors]
+
+    # ----------------------------------------------------------------- caches
+    def _version_key(self, params: list[torch.Tensor]) -> tuple:
+        # In-place optimiser steps bump a tensor's version; set_centres/select/append bump the
+        # generation (they replace tensors, whose fresh version counters could repeat).
+        return (self._generation, self.face_ids._version) + tuple(p._version for p in params)
+
+    def refresh(self) -> None:
+        """Rebuild the centre responses and the KNN index now (after centres moved)."""
+        self._cache_key = None
+        self._knn_key = None
+        self._ensure_cache()
+        self._ensure_knn()
+
+    @torch.no_grad()
+    def _ensure_cache(self) -> None:
+        key = self._version_key([self.bary, self.theta, self.s])
+        if key == self._cache_key:
+            return
+        self._terms = self._spectral_terms(torch.arange(len(self), device=self.field.device))
+        self._cache_key = key
+
+    @torch.no_grad()
+    def _ensure_knn(self) -> None:
+        key = self._version_key([self.bary])
+        if key == self._knn_key:
+            return
+        self._centre_emb = self.field.embedding_at(self.face_ids, self.bary)
+        self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
+        self._knn_key = key
+
+    def _spectral_terms(
+        self, idx: torch.Tensor, rows: RowCache | None = None
+    ) -> tuple[torch.Tensor, ...]:
+        """Per-kernel terms for kernels ``idx`` (``rows``: a cache for ``idx = arange(N)``).
+
+        ``coef = exp(-t lambda) phi(c)`` (U, K), ``h(c) = coef . phi(c)`` (U,), the bilinear
+        nodes and weights (U, 4) and the centre embeddings (U, D).
+        """
+        theta, s = self.theta[idx], self.s[idx]
+        face_ids, bary = self.face_ids[idx], self.bary[idx]
+        phi_c = self.field.eigenfunctions(face_ids, bary, theta, s, rows)
+        lam = self.field.eigenvalues(theta, s)
+        coef = torch.exp(-self.config.diffusion_time * lam) * phi_c
+        norm = (coef * phi_c).sum(dim=1)
+        nodes, weights = self.field.nodes(theta, s)
+        return coef, norm, nodes, weights, self.field.embedding_at(face_ids, bary)
+
+    # ----------------------------------------------------------------- evaluation
+    def albedo(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Albedo (P, 3) at surface points from the ``K_c`` strongest of ``K_s`` candidates.
+
+        ``aux`` holds ``indices`` (P, K_c) global kernel ids and ``rho`` (P, K_c).
+        """
+        face_ids = _long(face_ids, self.field.device)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
+        self._ensure_knn()
+        k_s = min(self.config.k_search, len(self))
+        emb_y = self.field.embedding_at(face_ids, bary)
+        cand = self._knn.search(emb_y, k_s + KNN_MARGIN)
+        cand, d2 = _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)
+        return self._blend(face_ids, bary, cand, return_aux, d2)
+
+    def albedo_bruteforce(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
+    ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Albedo with every kernel a candidate (no KNN); for tests and tiny sets."""
+        face_ids = _long(face_ids, self.field.device)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
+        return self._blend(face_ids, bary, None, return_aux)
+
+    def responses(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``rho`` (P, C) of candidate kernels ``cand`` (P, C) (all kernels when None).
+
+        Returns ``(rho, cand)``. Differentiable in every kernel parameter when grad is enabled;
+        under ``torch.no_grad`` it reuses the cached per-kernel coefficients.
+        """
+        face_ids = _long(face_ids, self.field.device)
+        bary = _query_float(bary, self.field.device, self.field.dtype)
+        if cand is None:
+            cand = torch.arange(len(self), device=self.field.device).expand(face_ids.shape[0], -1)
+        r = self._ratio(face_ids, bary, cand)
+        return soft_step(r, self.threshold[cand], self.sharpness[cand]), cand
+
+    def _blend(self, face_ids, bary, cand, return_aux, d2=None):
+        if cand is not None and self._grad_needed() and not bary.requires_grad:
+            kid, rho_top = self._top_responses(face_ids, bary, cand, d2)
+        else:
+            if cand is not None and d2 is not None and not self._grad_needed():
+                self._ensure_cache()
+                r = _pair_ratio(
+                    face_ids, bary, cand, *self._terms, self.field, self.config.sigma_b, d2=d2
+                )
+                rho = soft_step(r, self.threshold[cand], self.sharpness[cand])
+            else:
+                rho, cand = self.responses(face_ids, bary, cand)
+            k_c = min(self.config.k_blend, rho.shape[1])
+            rho_top, pos = torch.topk(rho, k_c, dim=1)
+            kid = cand.gather(1, pos)
+        weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
+        denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
+        out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
+        if return_aux:
+            return out, {"indices": kid, "rho": rho_top}
+        return out
+
+    def _grad_needed(self) -> bool:
+        return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
+
+    def _top_responses(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor, d2: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable ``rho`` of each point's ``K_c`` strongest candidates: (kid, rho).
+
+        Only the top ``K_c`` responses reach the albedo, and ``topk`` is piecewise constant,
+        so the gradient of the blend is exactly that of those ``P K_c`` pairs. The ``K_s``
+        candidates are ranked without a graph (:func:`_rank_pairs`, which also keeps what the
+        selected pairs' backward needs: ``P K_c (K + 4)`` numbers), and only the winners get
+        a graph (:class:`_PairResponse`). Per-kernel terms are computed once, with a graph,
+        for the batch's unique candidates; their backward touches only rows with gradient.
+        """
+        uniq, local = torch.unique(cand, return_inverse=True)
+        if uniq.shape[0] * 2 >= len(self) and self._rows.fits(self.field, len(self)):
+            # Most kernels are candidates (training batches): all of them, from cached rows.
+            uniq = torch.arange(len(self), device=cand.device)
+            local = cand
+            terms = self._spectral_terms(uniq, self._rows)
+        else:
+            terms = self._spectral_terms(uniq)
+        coef, norm, nodes, weights, emb_c = terms
+        k_c = min(self.config.k_blend, cand.shape[1])
+        detached = [t.detach() for t in terms]
+        parts = [
+            _rank_pairs(
+                face_ids[sl],
+                bary[sl],
+                local[sl],
+                d2[sl],
+                self.threshold.detach()[uniq],
+                self.sharpness.detach()[uniq],
+                *detached,
+                self.field,
+                self.config.sigma_b,
+                k_c,
+            )
+            for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
+        ]
+        top, dots, blend = (torch.cat(x) for x in zip(*parts, strict=True))
+        h = _PairResponse.apply(coef[top], weights[top], dots, blend)
+        emb_y = self.field.embedding_at(face_ids, bary)
+        d2_top = ((emb_y[:, None, :] - emb_c[top]) ** 2).sum(dim=2)
+        r = h * torch.exp(-d2_top / (2.0 * self.config.sigma_b**2)) / norm[top]
+        kid = uniq[top]
+        return kid, soft_step(r, self.threshold[kid], self.sharpness[kid])
+
+    def _ratio(
+        self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor
+    ) -> torch.Tensor:
+        """``r_j(y) = h_j(y) w_j(y) / h_j(c_j)`` for candidates (P, C)."""
+        if self._grad_needed():
+            uniq, local = torch.unique(cand, return_inverse=True)
+            terms = self._spectral_terms(uniq)
+            if face_ids.shape[0] > GRAD_CHUNK_POINTS:
+                # Large differentiable batches (multi-view ray batches): recompute each chunk's
+                # (P, C, K) intermediates in backward instead of keeping them all alive.
+                fn = partial(_pair_ratio, field=self.field, sigma_b=self.config.sigma_b)
+                parts = [
+                    _Recompute.apply(fn, face_ids[sl], bary[sl], local[sl], *terms)
+                    for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
+                ]
+                return torch.cat(parts)
+        else:
+            self._ensure_cache()
+            terms, local = self._terms, cand
+        return _pair_ratio(face_ids, bary, local, *terms, self.field, self.config.sigma_b)
+
+
+def _pair_ratio(
+    face_ids: torch.Tensor,
+    bary: torch.Tensor,
+    local: torch.Tensor,
+    coef: torch.Tensor,
+    norm: torch.Tensor,
+    nodes: torch.Tensor,
+    weights: torch.Tensor,
+    emb_c: torch.Tensor,
+    field: SpectralField,
+    sigma_b: float,
+    d2: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``r`` for points and their candidates ``local`` (rows of the per-kernel terms).
+
+    ``d2``: squared embedding distances (P, C) when the caller has them (the exact candidate
+    cut computes them anyway); they must not need a gradient.
+    """
+    h = None
+    if not torch.is_grad_enabled() and PAIR_PATH != "bmm":
+        h = _h_by_vertex_pairs(face_ids, bary, local, coef, nodes, weights, field)
+    if h is None:
+        h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field)
+    if d2 is None:
+        emb_y = field.embedding_at(face_ids, bary)
+        d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
+    return h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+
+
+@torch.no_grad()
+def _rank_pairs(
+    face_ids,
+    bary,
+    local,
+    d2,
+    threshold,
+    sharpness,
+    coef,
+    norm,
+    nodes,
+    weights,
+    emb_c,
+    field,
+    sigma_b,
+    k_c,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rank all candidates without a graph; keep what the top ``k_c`` pairs' backward needs.
+
+    Returns ``top`` (P, k_c) rows of the per-kernel terms, ``dots`` (P, k_c, 4) =
+    ``coef_j . Phi_y[n_jc]`` and ``blend`` (P, k_c, K) = ``sum_c w_jc Phi_y[n_jc]``
+    (``dh/dw`` and ``dh/dcoef`` of :class:`_PairResponse`).
+    """
+    phi_y = field.node_values(face_ids, bary)  # (P, G, K)
+    h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field, phi_y)
+    r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    rho = soft_step(r, threshold[local], sharpness[local])
+    top = local.gather(1, torch.topk(rho, k_c, dim=1).indices)  # (P, k_c)
+    p, g, k = phi_y.shape
+    rows = torch.arange(p, device=phi_y.device)[:, None, None] * g + nodes[top]  # (P, k_c, 4)
+    phi4 = phi_y.view(p * g, k).index_select(0, rows.reshape(-1)).view(p, k_c, -1, k)
+    dots = torch.matmul(phi4, coef[top][..., None]).squeeze(-1)  # (P, k_c, 4)
+    blend = torch.matmul(weights[top][:, :, None, :], phi4).squeeze(2)  # (P, k_c, K)
+    return top, dots, blend
+
+
+class _PairResponse(torch.autograd.Function):
+    """``h = sum_c w_c dots_c`` for selected pairs, with the analytic backward.
+
+    ``dots_c = coef . Phi_y[n_c]`` and ``blend = sum_c w_c Phi_y[n_c]`` were computed at the
+    same parameter values by :func:`_rank_pairs`; ``dh/dcoef = blend`` and ``dh/dw_c =
+    dots_c``. The point side ``Phi_y`` is a constant here (the caller routes batches whose
+    query barycentrics need a gradient through plain autograd instead).
+    """
+
+    @staticmethod
+    def forward(ctx, coef, weights, dots, blend):  # type: ignore[override]
+        ctx.save_for_backward(dots, blend)
+        return (weights * dots).sum(dim=2)
+
+    @staticmethod
+    def backward(ctx, grad_h):  # type: ignore[override]
+        dots, blend = ctx.saved_tensors
+        g = grad_h[..., None]
+        return g * blend, g * dots, None, None
+
+
+def _exact_cut(
+    emb_y: torch.Tensor, emb_c: torch.Tensor, cand: torch.Tensor, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest of a slightly larger candidate list, by per-pair distances.
+
+    faiss ranks with float32 ``|q|^2 + |c|^2 - 2 q.c`` computed differently for small and
+    large query batches, so the ``K_s``-th neighbour (and hence a colour) could depend on the
+    rest of the batch. Re-ranking ``K_s + margin`` candidates by the directly computed
+    ``|c - q|^2`` of each pair (elementwise, so the same bits whatever the batch), ties broken
+    by kernel index, makes the cut a function of the point alone (unless faiss's round-off
+    exceeds the margin's distance gap). The distances are the ones the kernel weight
+    ``w_j(y)`` uses, so they are computed once. Returns ``(cand (P, k), d2 (P, k))``.
+    """
+    cand, _ = torch.sort(cand, dim=1)  # ties then resolve by kernel index (stable sort)
+    diff = emb_c[cand] - emb_y[:, None, :]
+    d2 = (diff * diff).sum(dim=2)
+    d2, order = torch.sort(d2, dim=1, stable=True)
+    return cand.gather(1, order[:, :k]), d2[:, :k]
+
+
+def _h_by_node_matmul(
+    face_ids, bary, local, coef, nodes, weights, field, phi_y=None
+) -> torch.Tensor:
+    """``h_j(y)`` (P, C): ``coef_j . Phi_y[g]`` for every node g, then j's own 4 nodes."""
+    if phi_y is None:
+        phi_y = field.node_values(face_ids, bary)  # (P, G, K)
+    picked = coef.index_select(0, local.reshape(-1)).view(*local.shape, coef.shape[1])
+    dots = torch.bmm(picked, phi_y.transpose(1, 2))  # (P, C, G)
+    return (dots.gather(2, nodes[local]) * weights[local]).sum(dim=2)
+
+
+def _h_by_vertex_pairs(face_ids, bary, local, coef, nodes, weights, field) -> torch.Tensor | None:
+    """``h_j(y) = sum_v b_v H_j(v)`` with ``H_j(v)`` computed once per (vertex, kernel) pair.
+
+    ``h`` is linear in the query's barycentrics, so dense queries (baking, rendering: many
+    points per face, sorted by face) share the vertex values and need 4 K multiply-adds per
+    unique pair instead of G K per (point, candidate). Returns None when the pairs are not
+    shared enough to pay off (sparse queries), leaving the matmul path to it.
+    """
+    n_k = coef.shape[0]
+    verts = field.faces[face_ids]  # (P, 3)
+    keys = verts[:, :, None] * n_k + local[:, None, :]  # (P, 3, C)
+    uniq, inverse = torch.unique(keys, return_inverse=True)
+    p, c = local.shape
+    if (
+        PAIR_PATH == "auto"
+        and VERTEX_PATH_COST * uniq.shape[0] * nodes.shape[1] > p * c * field.n_nodes
+    ):
+        return None
+    vert, kern = uniq // n_k, uniq % n_k
+    values = torch.empty(uniq.shape[0], dtype=coef.dtype, device=coef.device)
+    flat_evecs = field.evecs.reshape(-1, field.k)
+    for sl in _slices(uniq.shape[0], PAIR_CHUNK):
+        j = kern[sl]
+        rows = vert[sl, None] * field.n_nodes + nodes[j]  # (u, 4) rows of the (n*G, K) view
+        block = flat_evecs.index_select(0, rows.reshape(-1)).view(-1, nodes.shape[1], field.k)
+        at_nodes = torch.bmm(block.to(coef.dtype), coef[j, :, None]).squeeze(2)  # (u, 4)
+        values[sl] = (at_nodes * weights[j]).sum(dim=1)
+    return (values[inverse] * bary.to(coef.dtype)[:, :, None]).sum(dim=1)
+
+
+class _Recompute(torch.autograd.Function):
+    """Activation checkpointing for one chunk: run ``fn`` without a graph, rebuild it in backward.
+
+    Written here rather than ``torch.utils.checkpoint`` because the latter imports
+    ``torch._dynamo`` on first use, which cost ~10 s per process on this machine.
+    """
+
+    @staticmethod
+    def forward(ctx, fn, *tensors):  # type: ignore[override]
+        ctx.fn = fn
+        ctx.save_for_backward(*tensors)
+        with torch.no_grad():
+            return fn(*tensors)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # type: ignore[override]
+        needs = ctx.needs_input_grad[1:]
+        inputs = [
+            t.detach().requires_grad_(n) for t, n in zip(ctx.saved_tensors, needs, strict=True)
+        ]
+        with torch.enable_grad():
+            out = ctx.fn(*inputs)
+        wanted = [t for t, n in zip(inputs, needs, strict=True) if n]
+        grads = iter(torch.autograd.grad(out, wanted, grad_out, allow_unused=True))
+        return (None, *(next(grads) if n else None for n in needs))
+
+
+def _slices(n: int, size: int) -> list[slice]:
+    return [slice(start, min(n, start + size)) for start in range(0, n, size)]
+
+
+def _long(x: torch.Tensor | np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x).to(device, torch.long)
+
+
+def _query_float(
+    x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype
+) -> torch.Tensor:
+    """Query inputs keep their autograd history (gradients may flow to query barycentrics)."""
+    if torch.is_tensor(x):
+        return x.to(device, dtype)
+    return torch.as_tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)
+
+
+def _float(x: torch.Tensor | np.ndarray, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """A copy: parameters must never alias the caller's arrays (``as_tensor`` of a float64
+    array on a float64 CPU field would, and optimiser steps would then write into them)."""
+    if torch.is_tensor(x):
+        return x.detach().to(device, dtype).clone()
+    return torch.tensor(np.asarray(x, dtype=np.float64)).to(device, dtype)

@@ -1,0 +1,670 @@
+"""The spectra artefact (ALGORITHM.md sections 2-3, INTERFACES.md section 1).
+
+:class:`Spectra` is the in-memory view of a spectra directory; big arrays are memory-mapped
+``.npy`` files, vertex-major. Building, writing, reading and caching live in this module.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import json
+import multiprocessing
+import os
+import shutil
+import tempfile
+import time
+import uuid
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from hktex_engine.config import SpectralConfig
+from hktex_engine.errors import SpectraError
+from hktex_engine.geometry.mesh import Mesh
+from hktex_engine.geometry.operators import (
+    AlboAssembler,
+    cotangent_stiffness,
+    lumped_mass,
+    reference_tangent_field,
+)
+from hktex_engine.progress import NullProgress, Progress, check_cancel
+from hktex_engine.spectra.alignment import align_basis
+from hktex_engine.spectra.eigensolver import (
+    SolveInfo,
+    eigs_sliced,
+    eigs_warm,
+    estimate_lambda_k,
+)
+
+
+@dataclass
+class Spectra:
+    """An aligned anisotropic eigenbasis grid plus the isotropic spectrum of one mesh.
+
+    Node ``g = a * S + s`` (angle-major) for angle index ``a`` and anisotropy index ``s``.
+    """
+
+    vertices: np.ndarray  # (n, 3) normalised
+    faces: np.ndarray  # (m, 3)
+    mass: np.ndarray  # (n,)
+    grid_theta: np.ndarray  # (A,) radians ascending, [0, pi]
+    grid_eta: np.ndarray  # (S,) ascending
+    evals: np.ndarray  # (A*S, K)
+    evecs: np.ndarray  # (n, A*S, K) float16/32, possibly a read-only memmap
+    iso_evals: np.ndarray  # (K_iso,)
+    iso_evecs: np.ndarray  # (n, K_iso)
+    face_frames: np.ndarray  # (m, 3) unit u_ref per face
+    config: SpectralConfig
+    mesh_hash: str
+    scale: float = 1.0
+    translation: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    manifest: dict = field(default_factory=dict)
+    path: Path | None = None
+
+    @property
+    def grid_s(self) -> np.ndarray:
+        """Anisotropy grid coordinate s = ln(1 + eta)."""
+        return np.log1p(self.grid_eta)
+
+    @property
+    def embedding(self) -> np.ndarray:
+        """Biharmonic embedding per vertex, (n, K_iso - 1): psi_k / mu_k, constant mode dropped."""
+        return self.iso_evecs[:, 1:] / self.iso_evals[1:][None, :]
+
+    @property
+    def config_hash(self) -> str:
+        return self.config.key()
+
+
+# --------------------------------------------------------------------------------------------
+# Building
+# --------------------------------------------------------------------------------------------
+
+FORMAT = "hktex-spectra"
+FORMAT_VERSION = 1
+#: Extra Ritz vectors carried along the warm-start chain (never stored): the subspace
+#: iteration's slowest rate is about lambda_K / lambda_(K+p), so p buys convergence speed.
+OVERSAMPLE_FRACTION = 0.25
+_ARRAY_FILES = (
+    "vertices",
+    "faces",
+    "mass",
+    "grid_theta",
+    "grid_eta",
+    "evals",
+    "evecs",
+    "iso_evals",
+    "iso_evecs",
+    "face_frames",
+)
+
+
+def grid_nodes(config: SpectralConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Grid angles (radians, both ends of [0, pi]) and anisotropies of a config."""
+    return np.linspace(0.0, np.pi, config.angles), np.asarray(config.anisotropies, dtype=float)
+
+
+def _work_size(config: SpectralConfig, n: int) -> int:
+    """Columns carried per node: K plus oversampling, bounded by what the mesh allows."""
+    p = max(8, int(np.ceil(OVERSAMPLE_FRACTION * config.k)))
+    return min(config.k + p, n - 2)
+
+
+class _MemorySink:
+    """Keeps every node's aligned eigenvectors in one vertex-major array (small meshes)."""
+
+    def __init__(self, n: int, nodes: int, k: int, dtype: str) -> None:
+        self.array = np.empty((n, nodes, k), dtype=dtype)
+
+    def put(self, g: int, block: np.ndarray) -> None:
+        self.array[:, g, :] = block
+
+    def get(self, g: int) -> np.ndarray:
+        return np.asarray(self.array[:, g, :], dtype=np.float64)
+
+
+class _FileSink:
+    """Streams node blocks to a node-major scratch file, transposed to vertex-major at the end.
+
+    Nodes are computed one at a time but stored vertex-major; writing strided slices into a
+    memory map would make every page of the (up to GBs) array resident, so blocks go to a
+    scratch file with plain positional writes and are transposed in bounded vertex chunks.
+    """
+
+    def __init__(self, directory: Path, n: int, nodes: int, k: int, dtype: str) -> None:
+        self.n, self.nodes, self.k, self.dtype = n, nodes, k, np.dtype(dtype)
+        self.scratch = directory / "evecs.scratch"
+        self._fd = os.open(self.scratch, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._block = n * k * 4
+
+    def put(self, g: int, block: np.ndarray) -> None:
+        os.pwrite(
+            self._fd, np.ascontiguousarray(block, dtype=np.float32).tobytes(), g * self._block
+        )
+
+    def get(self, g: int) -> np.ndarray:
+        raw = os.pread(self._fd, self._block, g * self._block)
+        return np.frombuffer(raw, dtype=np.float32).reshape(self.n, self.k).astype(np.float64)
+
+    def finalize(self, path: Path, chunk_bytes: int = 64 << 20) -> None:
+        rows = max(1, chunk_bytes // (self.nodes * self.k * 4))
+        with open(path, "wb") as f:
+            header = {"descr": self.dtype.str, "fortran_order": False}
+            header["shape"] = (self.n, self.nodes, self.k)
+            np.lib.format.write_array_header_1_0(f, header)
+            for v0 in range(0, self.n, rows):
+                v1 = min(self.n, v0 + rows)
+                buf = np.empty((v1 - v0, self.nodes, self.k), dtype=self.dtype)
+                for g in range(self.nodes):
+                    off = g * self._block + v0 * self.k * 4
+                    raw = os.pread(self._fd, (v1 - v0) * self.k * 4, off)
+                    buf[:, g, :] = np.frombuffer(raw, dtype=np.float32).reshape(v1 - v0, self.k)
+                f.write(buf.tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+        self.close()
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+        self.scratch.unlink(missing_ok=True)
+
+
+def _operator_key(theta: float, eta: float) -> tuple[float, float]:
+    """Nodes with equal keys have the same operator: D depends on theta mod pi only, and
+    eta = 0 is the isotropic operator for every angle."""
+    if eta == 0.0:
+        return (-1.0, 0.0)
+    return (round(float(np.mod(theta, np.pi)), 12), float(eta))
+
+
+def _solve_timed(L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float) -> tuple:
+    """One cold solve, timed (runs in a worker process when ``workers > 1``)."""
+    t0 = time.perf_counter()
+    vals, vecs, method = eigs_sliced(L, mass, k, estimate)
+    return vals, vecs, time.perf_counter() - t0, method
+
+
+def _cold_solutions(
+    operators: Iterator[tuple[sp.csr_matrix, float]], mass: np.ndarray, k: int, workers: int
+) -> Iterator[tuple]:
+    """Cold solves of ``operators`` in order; with ``workers > 1`` in a process pool.
+
+    At most ``workers + 1`` results are in flight, so memory stays bounded by a few bases
+    however large the grid. Worker processes are spawned (not forked) so no BLAS thread
+    pool state is inherited.
+    """
+    if workers <= 1:
+        for L, estimate in operators:
+            yield _solve_timed(L, mass, k, estimate)
+        return
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        pending: deque = deque()
+        try:
+            for L, estimate in operators:
+                pending.append(pool.submit(_solve_timed, L, mass, k, estimate))
+                if len(pending) > workers:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
+        finally:
+            for fut in pending:
+                fut.cancel()
+
+
+def _node_plan(thetas: np.ndarray, etas: np.ndarray) -> list[tuple[int, float, float, str, int]]:
+    """For each node in order: (g, theta, eta, source, holder) with source 'iso', 'copy' (of
+    node ``holder``, the same operator) or 'solve'."""
+    plan = []
+    seen: dict[tuple[float, float], int] = {}
+    S = len(etas)
+    for a, theta in enumerate(thetas):
+        for s, eta in enumerate(etas):
+            g = a * S + s
+            key = _operator_key(theta, eta)
+            if key == (-1.0, 0.0):
+                plan.append((g, float(theta), float(eta), "iso", -1))
+            elif key in seen:
+                plan.append((g, float(theta), float(eta), "copy", seen[key]))
+            else:
+                seen[key] = g
+                plan.append((g, float(theta), float(eta), "solve", -1))
+    return plan
+
+
+def compute_spectra(
+    mesh: Mesh,
+    config: SpectralConfig | None = None,
+    progress: Progress | None = None,
+    out_dir: str | Path | None = None,
+    solver: Literal["cold", "warm"] = "cold",
+    workers: int = 1,
+) -> Spectra:
+    """Compute the aligned ALBO grid and the isotropic spectrum of ``mesh``.
+
+    Without ``out_dir`` everything stays in memory (fine for small meshes and tests). With
+    ``out_dir`` eigenvectors stream to disk while they are computed, the directory is
+    published atomically, and the memory-mapped result is returned: the way to go for big
+    meshes, whose grid (n x 49 x 256 floats) can exceed the memory one wants to use.
+
+    ``solver``: ``cold`` solves each distinct operator by ARPACK shift-invert (exact; nodes
+    are independent, so ``workers`` processes can share them); ``warm`` runs a shift-invert
+    block iteration from the previous node's basis (sequential; measured slower at equal
+    accuracy, see docs/spectra.md). Nodes whose operator equals an earlier node's
+    (``theta = pi`` is ``theta = 0``; ``eta = 0`` is isotropic) are never solved twice.
+    Alignment is always sequential along the chain of ALGORITHM.md section 3.
+    """
+    config = config or SpectralConfig()
+    progress = progress or NullProgress()
+    if solver not in ("cold", "warm"):
+        raise ValueError(f"unknown solver {solver!r}")
+    t_start = time.perf_counter()
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    F = np.asarray(mesh.faces, dtype=np.int64)
+    n = len(V)
+    K = config.k
+    need = max(K, config.k_iso)
+    if need >= n - 2:
+        raise SpectraError(
+            f"mesh has {n} vertices; k={K}, k_iso={config.k_iso} need more than {need + 2}"
+        )
+    thetas, etas = grid_nodes(config)
+    A, S = len(thetas), len(etas)
+    G = A * S
+    total = G + 1
+    timings: dict[str, float] = {}
+    staging: Path | None = None
+    sink: _MemorySink | _FileSink
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+        sink = _FileSink(staging, n, G, K, config.evecs_dtype)
+    else:
+        sink = _MemorySink(n, G, K, config.evecs_dtype)
+    cold_iter: Iterator[tuple] | None = None
+    try:
+        t0 = time.perf_counter()
+        mass = lumped_mass(V, F)
+        frames = reference_tangent_field(V, F, mode=config.tangent_field)
+        assembler = AlboAssembler(V, F, frames)
+        timings["operators_s"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        p = _work_size(config, n) if solver == "warm" else K
+        k_first = max(p, need)
+        weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
+        iso_vals, iso_vecs, _ = eigs_sliced(cotangent_stiffness(V, F), mass, k_first, weyl)
+        timings["isotropic_s"] = time.perf_counter() - t0
+        progress.update(1, total, stage="isotropic")
+        check_cancel(progress)
+
+        plan = _node_plan(thetas, etas)
+        if solver == "cold":
+            cold_iter = _cold_solutions(
+                (
+                    (assembler.stiffness(th, et), estimate_lambda_k(iso_vals[K - 1], et))
+                    for _, th, et, src, _ in plan
+                    if src == "solve"
+                ),
+                mass,
+                K,
+                workers,
+            )
+        evals = np.empty((G, K))
+        solve_log: list[dict] = []
+        # the aligned reference and the warm start of the next node in the chain
+        iso_pair = (iso_vecs[:, :K], iso_vecs[:, :p])
+        first_of_prev_angle: tuple[np.ndarray, np.ndarray] | None = None
+        prev: tuple[np.ndarray, np.ndarray] | None = None
+        t_solve = t_align = 0.0
+        for g, theta, eta, source, holder in plan:
+            s = g % S
+            ref, start = (first_of_prev_angle or iso_pair) if s == 0 else prev
+            t0 = time.perf_counter()
+            if source == "iso":
+                vals, vecs = iso_vals[:p], iso_vecs[:, :p]
+                info = SolveInfo("isotropic", 0, 0.0)
+            elif source == "copy":  # same operator as an earlier node: reuse, realign
+                vals, vecs = evals[holder], sink.get(holder)
+                info = SolveInfo(f"copy of node {holder}", 0, 0.0)
+            elif cold_iter is not None:
+                vals, vecs, seconds, method = next(cold_iter)
+                info = SolveInfo(method, 0, 0.0, seconds)
+            else:
+                L = assembler.stiffness(theta, eta)
+                vals, vecs, info = eigs_warm(L, mass, start, K)
+            info.seconds = time.perf_counter() - t0
+            t_solve += info.seconds
+            t0 = time.perf_counter()
+            aligned, aligned_vals, ainfo = align_basis(
+                ref, vecs[:, :K], vals[:K], mass, rotation=config.rotation
+            )
+            t_align += time.perf_counter() - t0
+            evals[g] = aligned_vals
+            sink.put(g, aligned)
+            prev = (aligned, vecs if vecs.shape[1] >= p else start)
+            if s == 0:
+                first_of_prev_angle = prev
+            solve_log.append(
+                {
+                    "node": g,
+                    "theta": theta,
+                    "eta": eta,
+                    "method": info.method,
+                    "iterations": info.iterations,
+                    "max_residual": info.max_residual,
+                    "seconds": round(info.seconds, 4),
+                    "alignment_mean_overlap": ainfo.mean_overlap,
+                }
+            )
+            progress.update(g + 2, total, stage="grid", node=g)
+            check_cancel(progress)
+        timings["solve_s"] = t_solve
+        timings["align_s"] = t_align
+
+        iso_vals_k = iso_vals[: config.k_iso].copy()
+        iso_vecs_k = np.ascontiguousarray(iso_vecs[:, : config.k_iso])
+        manifest = _manifest(mesh, config, n, len(F), G, timings, solve_log)
+        manifest["solver"] = {
+            "method": solver,
+            "workers": workers,
+            "iso_lambda_k": float(iso_vals[K - 1]),
+            "nodes": solve_log,
+        }
+        spectra = Spectra(
+            vertices=V,
+            faces=F,
+            mass=mass,
+            grid_theta=thetas,
+            grid_eta=etas,
+            evals=evals,
+            evecs=sink.array if isinstance(sink, _MemorySink) else np.empty((0, G, K)),
+            iso_evals=iso_vals_k,
+            iso_evecs=iso_vecs_k,
+            face_frames=frames,
+            config=config,
+            mesh_hash=mesh.content_hash,
+            scale=float(mesh.scale),
+            translation=np.asarray(mesh.translation, dtype=np.float64),
+            manifest=manifest,
+        )
+        timings["total_s"] = time.perf_counter() - t_start
+        if staging is None:
+            return spectra
+        t0 = time.perf_counter()
+        _write_arrays(spectra, staging, skip=("evecs",))
+        sink.finalize(staging / "evecs.npy")
+        timings["write_s"] = time.perf_counter() - t0
+        _write_manifest(spectra, staging)
+        _publish(staging, out_dir)
+        staging = None
+        return load_spectra(out_dir)
+    finally:
+        if cold_iter is not None:
+            cold_iter.close()
+        if isinstance(sink, _FileSink):
+            sink.close()
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _manifest(
+    mesh: Mesh, config: SpectralConfig, n: int, m: int, G: int, timings: dict, log: list
+) -> dict:
+    import scipy
+
+    import hktex_engine
+
+    return {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "mesh_hash": mesh.content_hash,
+        "config": config.to_dict(),
+        "config_hash": config.key(),
+        "scale": float(mesh.scale),
+        "translation": [float(x) for x in np.asarray(mesh.translation).ravel()],
+        "sizes": {
+            "n_vertices": n,
+            "n_faces": m,
+            "angles": config.angles,
+            "anisotropies": len(config.anisotropies),
+            "nodes": G,
+            "k": config.k,
+            "k_iso": config.k_iso,
+        },
+        "libraries": {
+            "numpy": np.__version__,
+            "scipy": scipy.__version__,
+            "hktex": getattr(hktex_engine, "__version__", "0"),
+        },
+        "timings": timings,
+        "solver": {"nodes": log},
+        "created_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Writing, publishing, reading
+# --------------------------------------------------------------------------------------------
+
+
+def _arrays_of(spectra: Spectra) -> dict[str, np.ndarray]:
+    dtype = spectra.config.evecs_dtype
+    return {
+        "vertices": np.asarray(spectra.vertices, dtype=np.float64),
+        "faces": np.asarray(spectra.faces, dtype=np.int64),
+        "mass": np.asarray(spectra.mass, dtype=np.float64),
+        "grid_theta": np.asarray(spectra.grid_theta, dtype=np.float64),
+        "grid_eta": np.asarray(spectra.grid_eta, dtype=np.float64),
+        "evals": np.asarray(spectra.evals, dtype=np.float64),
+        "evecs": np.asarray(spectra.evecs, dtype=dtype),
+        "iso_evals": np.asarray(spectra.iso_evals, dtype=np.float64),
+        "iso_evecs": np.asarray(spectra.iso_evecs, dtype=np.float64),
+        "face_frames": np.asarray(spectra.face_frames, dtype=np.float64),
+    }
+
+
+def _write_arrays(spectra: Spectra, directory: Path, skip: tuple[str, ...] = ()) -> None:
+    for name, arr in _arrays_of(spectra).items():
+        if name in skip:
+            continue
+        with open(directory / f"{name}.npy", "wb") as f:
+            np.save(f, np.ascontiguousarray(arr), allow_pickle=False)
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def _write_manifest(spectra: Spectra, directory: Path) -> None:
+    """The manifest goes last: a directory without one is never a valid spectra."""
+    manifest = dict(spectra.manifest)
+    manifest["files"] = {name: (directory / f"{name}.npy").stat().st_size for name in _ARRAY_FILES}
+    manifest["bytes"] = int(sum(manifest["files"].values()))
+    tmp = directory / "manifest.json.tmp"
+    with open(tmp, "w") as f:
+        json.dump(manifest, f, indent=1, default=float)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, directory / "manifest.json")
+    spectra.manifest = manifest
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _publish(staging: Path, out_dir: Path) -> None:
+    """Move a complete staging directory to ``out_dir`` with one rename.
+
+    An existing ``out_dir`` is first renamed aside (then deleted), so a reader sees either
+    the old complete directory, nothing for an instant, or the new complete one; never a
+    half-written one.
+    """
+    _fsync_dir(staging)
+    old: Path | None = None
+    if out_dir.exists():
+        old = out_dir.with_name(f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}")
+        os.rename(out_dir, old)
+    os.rename(staging, out_dir)
+    _fsync_dir(out_dir.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def write_spectra(spectra: Spectra, out_dir: str | Path) -> Path:
+    """Write ``spectra`` as a spectra directory (INTERFACES.md section 1), atomically."""
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    try:
+        _write_arrays(spectra, staging)
+        _write_manifest(spectra, staging)
+        _publish(staging, out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    spectra.path = out_dir
+    return out_dir
+
+
+def load_spectra(
+    path: str | Path,
+    mmap: bool = True,
+    expect_mesh_hash: str | None = None,
+    expect_config: SpectralConfig | None = None,
+) -> Spectra:
+    """Read a spectra directory; big arrays memory-mapped read-only when ``mmap``.
+
+    Raises :class:`SpectraError` when the directory or its manifest is missing or corrupt,
+    an array is missing or has the wrong shape, or it belongs to another mesh/config.
+    """
+    path = Path(path)
+    mpath = path / "manifest.json"
+    if not mpath.is_file():
+        raise SpectraError(f"{path} is not a spectra directory (no manifest.json)")
+    try:
+        manifest = json.loads(mpath.read_text())
+        if manifest.get("format") != FORMAT:
+            raise SpectraError(f"{mpath}: format is {manifest.get('format')!r}, not {FORMAT!r}")
+        if int(manifest.get("version", -1)) > FORMAT_VERSION:
+            raise SpectraError(f"{mpath}: version {manifest['version']} is newer than supported")
+        config = SpectralConfig.from_dict(manifest["config"])
+        sizes = manifest["sizes"]
+        mesh_hash = str(manifest["mesh_hash"])
+        scale = float(manifest["scale"])
+        translation = np.asarray(manifest["translation"], dtype=np.float64)
+    except SpectraError:
+        raise
+    except (ValueError, KeyError, TypeError) as exc:
+        raise SpectraError(f"{mpath} is corrupt: {exc}") from exc
+    if expect_mesh_hash is not None and mesh_hash != expect_mesh_hash:
+        raise SpectraError(f"{path} was computed for another mesh ({mesh_hash[:12]}...)")
+    if expect_config is not None and config.key() != expect_config.key():
+        raise SpectraError(f"{path} was computed with another spectral config")
+    n, m, G, K = sizes["n_vertices"], sizes["n_faces"], sizes["nodes"], sizes["k"]
+    A, S, K_iso = sizes["angles"], sizes["anisotropies"], sizes["k_iso"]
+    expected = {
+        "vertices": (n, 3),
+        "faces": (m, 3),
+        "mass": (n,),
+        "grid_theta": (A,),
+        "grid_eta": (S,),
+        "evals": (G, K),
+        "evecs": (n, G, K),
+        "iso_evals": (K_iso,),
+        "iso_evecs": (n, K_iso),
+        "face_frames": (m, 3),
+    }
+    arrays: dict[str, np.ndarray] = {}
+    for name, shape in expected.items():
+        fpath = path / f"{name}.npy"
+        try:
+            arr = np.load(fpath, mmap_mode="r" if mmap else None, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise SpectraError(f"{fpath} is missing or unreadable: {exc}") from exc
+        if arr.shape != shape:
+            raise SpectraError(f"{fpath} has shape {arr.shape}, expected {shape}")
+        arrays[name] = arr
+    return Spectra(
+        **arrays,
+        config=config,
+        mesh_hash=mesh_hash,
+        scale=scale,
+        translation=translation,
+        manifest=manifest,
+        path=path,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Cache
+# --------------------------------------------------------------------------------------------
+
+
+class SpectraCache:
+    """Spectra directories under ``root`` keyed by (mesh content hash, spectral config).
+
+    The same request never computes twice: a hit is read back memory-mapped; a miss takes an
+    exclusive lock file for that key so concurrent processes asking for the same spectra
+    wait for the first one instead of computing it again.
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self.computed = 0  # how many times this instance actually computed (for tests/stats)
+
+    def key(self, mesh_hash: str, config: SpectralConfig) -> str:
+        return f"{mesh_hash[:24]}-{config.key()[:16]}"
+
+    def path_for(self, mesh_hash: str, config: SpectralConfig) -> Path:
+        return self.root / self.key(mesh_hash, config)
+
+    def lookup(self, mesh_hash: str, config: SpectralConfig) -> Spectra | None:
+        """The cached spectra if present and readable, else None (never computes)."""
+        path = self.path_for(mesh_hash, config)
+        if not (path / "manifest.json").is_file():
+            return None
+        try:
+            return load_spectra(path, expect_mesh_hash=mesh_hash, expect_config=config)
+        except SpectraError:
+            return None
+
+    def get_or_compute(
+        self, mesh: Mesh, config: SpectralConfig | None = None, progress: Progress | None = None
+    ) -> Spectra:
+        config = config or SpectralConfig()
+        hit = self.lookup(mesh.content_hash, config)
+        if hit is not None:
+            return hit
+        self.root.mkdir(parents=True, exist_ok=True)
+        lock_path = self.root / f"{self.key(mesh.content_hash, config)}.lock"
+        with open(lock_path, "a+") as lock:
+            while True:  # poll so a waiting task can still be cancelled
+                try:
+                    fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    check_cancel(progress)
+                    time.sleep(0.2)
+            try:
+                hit = self.lookup(mesh.content_hash, config)
+                if hit is not None:
+                    return hit
+                out = self.path_for(mesh.content_hash, config)
+                result = compute_spectra(mesh, config, progress, out_dir=out)
+                self.computed += 1
+                return result
+            finally:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_UN)

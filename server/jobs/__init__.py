@@ -1,0 +1,1 @@
+"""The job system: the jobs table as a queue, the supervisor, a process per job, and the tasks."""
