@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Literal
 
 
@@ -81,10 +81,53 @@ class KernelConfig:
 
 
 @dataclass(frozen=True)
+class DensityRules:
+    """Density control (ALGORITHM.md section 7); fractions of the total steps T.
+
+    ``stats`` says how the window's statistics are reduced: ``"mean"`` (our first reading:
+    a kernel's error and contribution averaged over the points it served) or
+    ``"step_sum"`` (ALGORITHM.md §7b, both configurations of the authors: summed over the
+    points of each step, then averaged over the window's steps, so they grow with points
+    per step and with a kernel's footprint). ``prune_at`` lists explicit prune fractions
+    (§7b: 0.2 and 0.4) instead of the ``prune_from``/``until``/``every`` range.
+    """
+
+    prune_from: float = 0.2
+    prune_until: float = 0.6
+    prune_every: float = 0.1
+    prune_at: tuple[float, ...] = ()
+    densify_from: float = 0.05
+    densify_until: float = 0.7
+    densify_every: float = 0.04
+    window: float = 0.05
+    min_hits_fraction: float = 0.02
+    min_contribution: float = 0.07
+    error_threshold: float = 0.0208
+    max_growth: float = 0.4
+    floor: int = 100
+    split_size: float = 0.235
+    split_offset: float = 0.2
+    split_shrink: float = 1.6
+    stats: Literal["mean", "step_sum"] = "mean"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "prune_at", tuple(float(f) for f in self.prune_at))
+        if self.stats not in ("mean", "step_sum"):
+            raise ValueError("density stats must be 'mean' or 'step_sum'")
+
+
+@dataclass(frozen=True)
 class FitParams:
     """Fitting parameters (ALGORITHM.md sections 6-8), reference defaults.
 
-    Field names mirror the CLI flags and the API's ``params`` object.
+    Field names mirror the CLI flags and the API's ``params`` object. ``loss`` is the point
+    loss (``"smooth_l1"``, beta 1, or ``"mse"``); ``loss_sum_rgb`` sums it over the three
+    channels before averaging over points (§7b: the authors' reduction; a mean over all
+    3P elements makes the centres' SGD gradient 3x smaller). ``init`` picks the initial
+    threshold/sharpness distributions (``"earlier"``: eps ~ U(0.9, 1), k ~ 10 + 40U;
+    ``"later"``: eps ~ 0.3 + 0.7 U^0.7, k ~ 10 + 40 U^0.5). ``polish_colors`` solves the
+    colours exactly by least squares for the final footprints after the last step
+    (the albedo is linear in them; ``fitting/colour_solve.py``).
     """
 
     kernels: int = 10_000
@@ -105,7 +148,86 @@ class FitParams:
     densify: bool = True
     checkpoint_every: int = 500
     kernel: KernelConfig = field(default_factory=KernelConfig)
+    budget_factor: float = 7.0
+    loss: Literal["smooth_l1", "mse"] = "smooth_l1"
+    loss_sum_rgb: bool = False
+    init: Literal["earlier", "later"] = "earlier"
+    density: DensityRules = field(default_factory=DensityRules)
+    polish_colors: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.kernel, dict):
+            object.__setattr__(self, "kernel", KernelConfig(**self.kernel))
+        if isinstance(self.density, dict):
+            object.__setattr__(self, "density", DensityRules(**self.density))
+        if self.loss not in ("smooth_l1", "mse"):
+            raise ValueError("loss must be 'smooth_l1' or 'mse'")
+        if self.init not in ("earlier", "later"):
+            raise ValueError("init must be 'earlier' or 'later'")
 
     @property
     def budget(self) -> int:
-        return self.max_kernels if self.max_kernels is not None else 7 * self.kernels
+        if self.max_kernels is not None:
+            return self.max_kernels
+        return int(round(self.budget_factor * self.kernels))
+
+
+#: ALGORITHM.md §7b, the authors' later configuration (their ablation base, likely Table 1's).
+LATER_KERNEL = KernelConfig(diffusion_time=0.06245, sigma_b=0.05, k_search=50, k_blend=30)
+LATER_DENSITY = DensityRules(
+    prune_at=(0.2, 0.4),
+    min_hits_fraction=0.00169,
+    densify_from=0.08,
+    densify_until=0.7,
+    densify_every=0.02,
+    error_threshold=0.0237,
+    split_size=0.174,
+    split_offset=0.15,
+    stats="step_sum",
+)
+
+#: Named, complete configurations: ``"earlier"`` is ALGORITHM.md §4-8's reference defaults
+#: (the authors' earlier UV configuration), ``"later"`` their later one (§7b) as a whole.
+PRESETS: dict[str, FitParams] = {
+    "earlier": FitParams(),
+    "later": FitParams(
+        kernels=1_000,
+        budget_factor=5.0,
+        steps=5_000,
+        points_per_step=4_096,
+        lr_colors=0.00615,
+        lr_theta=0.0993,
+        lr_eta=0.00467,
+        lr_threshold=0.00109,
+        lr_sharpness=0.00129,
+        lr_base=0.00096,
+        lr_centers=0.0991,
+        center_momentum=0.9,
+        loss="mse",
+        loss_sum_rgb=True,
+        init="later",
+        density=LATER_DENSITY,
+        kernel=LATER_KERNEL,
+    ),
+}
+
+
+#: The preset a fit starts from when none is named (docs/fitting.md, "Choosing the defaults").
+DEFAULT_PRESET = "earlier"
+
+
+def fit_preset(name: str, **overrides) -> FitParams:
+    """The named preset with ``overrides`` applied (unknown names are a ValueError)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}")
+    base = PRESETS[name]
+    return replace(base, **overrides) if overrides else base
+
+
+def fit_params_from(values: dict) -> FitParams:
+    """FitParams from a flat mapping (CLI flags, the API's ``params``): ``preset`` picks the
+    base (default ``DEFAULT_PRESET``), every other known, non-None field overrides it."""
+    given = {
+        k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
+    }
+    return fit_preset(values.get("preset") or DEFAULT_PRESET, **given)

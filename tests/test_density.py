@@ -208,3 +208,43 @@ def test_act_resizes_optimiser_state_and_stats_with_the_kernels():
     assert ctl.act(20, model, opt)
     assert len(model.face_ids) == 140 - 3
     assert torch.equal(opt.adam.state["colors"].exp_avg[:3, 0], torch.tensor([3.0, 4, 5], dtype=DT))
+
+
+def test_step_sum_statistics_of_the_later_configuration():
+    """§7b: error mass and contribution are per-step sums averaged over the window's steps
+    (independent computation on crafted statistics), and prune runs at 0.2 T and 0.4 T."""
+    from hktex_engine.config import LATER_DENSITY
+
+    v, f = flat_patch(5)
+    model = ToyModel(v, f, np.arange(4), np.full((4, 3), 1 / 3))
+    tracer = FlatTracer(v, f)
+    params = FitParams(kernels=4, steps=100, density=LATER_DENSITY)
+    ctl = DensityController(
+        params,
+        100,
+        torch.as_tensor(v, dtype=DT),
+        torch.as_tensor(f),
+        torch.as_tensor(np.tile([1.0, 0.0, 0.0], (len(f), 1)), dtype=DT),
+        tracer,
+    )
+    ctl.bind(model)
+    assert ctl.prune_steps == [20, 40]
+    assert ctl.densify_steps[:3] == [8, 10, 12]
+    topk = torch.tensor([[0, 1, -1], [1, 2, 3], [0, 3, 2]])
+    rho = torch.tensor([[0.5, 0.25, 0.0], [1.0, 0.0, 0.5], [0.2, 0.2, 0.6]], dtype=DT)
+    err = torch.tensor([0.3, 0.6, 0.1], dtype=DT)
+    for step in (17, 18, 19):  # three recorded steps in both windows
+        ctl.step = step
+        ctl.record(PointStats(err, topk, rho))
+    mass = np.zeros(4)
+    for p in range(3):
+        tot = sum(r for k, r in zip(topk[p].tolist(), rho[p].tolist(), strict=True) if k >= 0)
+        for k, r in zip(topk[p].tolist(), rho[p].tolist(), strict=True):
+            if k >= 0 and r > 0:
+                mass[k] += err[p].item() * r / tot
+    assert ctl.window_steps == {"prune": 3, "densify": 3}
+    # three identical steps: the per-step mean of the sums is one step's sum
+    assert np.allclose(ctl.acc["err_sum"].numpy() / ctl.window_steps["densify"], mass)
+    assert np.allclose(
+        ctl.acc["rho_sum"].numpy() / ctl.window_steps["prune"], [0.7, 1.25, 0.6, 0.7]
+    )

@@ -213,3 +213,39 @@ def test_cli_views_flag_calls_fit_multiview(tmp_path, capsys, sphere, monkeypatc
     summary = json.loads(capsys.readouterr().out)
     assert summary["task"] == "fit_multiview" and out.is_file()
     assert seen["params"].steps == 7 and seen["views"].startswith("views at")
+
+
+def test_presets_are_the_two_configurations_of_algorithm_md():
+    """'earlier' is the reference default record; 'later' carries §7b's table as a whole."""
+    from hktex_engine.config import PRESETS, fit_preset
+
+    assert fit_preset("earlier") == FitParams()
+    later = fit_preset("later", steps=10)
+    assert later.steps == 10 and later.kernels == 1000 and later.budget == 5000
+    assert (later.loss, later.loss_sum_rgb, later.init, later.center_momentum) == (
+        "mse",
+        True,
+        "later",
+        0.9,
+    )
+    k = later.kernel
+    assert (k.diffusion_time, k.k_search, k.k_blend) == (0.06245, 50, 30)
+    assert later.density.stats == "step_sum" and later.density.prune_at == (0.2, 0.4)
+    assert PRESETS["later"].points_per_step == 4096
+    with pytest.raises(ValueError, match="unknown preset"):
+        fit_preset("nope")
+
+
+def test_loss_reductions_differ_by_the_channel_count():
+    import torch
+
+    from hktex_engine.fitting.uv import point_loss
+
+    pred = torch.rand(50, 3, dtype=torch.float64)
+    target = torch.rand(50, 3, dtype=torch.float64)
+    mean3 = point_loss(pred, target, FitParams(loss="mse"))
+    summed = point_loss(pred, target, FitParams(loss="mse", loss_sum_rgb=True))
+    assert torch.isclose(summed, 3 * mean3)
+    assert torch.isclose(mean3, ((pred - target) ** 2).mean())
+    smooth = point_loss(pred, target, FitParams())
+    assert torch.isclose(smooth, 0.5 * mean3)  # |d| < 1: smooth-L1 (beta 1) is half the square

@@ -7,7 +7,7 @@ import os
 import time
 from pathlib import Path
 
-from hktex_engine.config import FitParams, SpectralConfig
+from hktex_engine.config import DEFAULT_PRESET, PRESETS, FitParams, SpectralConfig, fit_params_from
 
 #: where computed spectra are cached when --spectra is not given (override: HKTEX_CACHE_DIR)
 DEFAULT_CACHE = Path(os.environ.get("HKTEX_CACHE_DIR", Path.home() / ".cache" / "hktex"))
@@ -21,7 +21,7 @@ def _floats(text: str) -> tuple[float, ...]:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    d = FitParams()
+    d = PRESETS[DEFAULT_PRESET]
     s = SpectralConfig()
     p = subparsers.add_parser(
         "fit",
@@ -35,12 +35,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--views", type=Path, help="multi-view dataset directory (docs/views.md)")
     p.add_argument("--spectra", type=Path, help="spectra directory (default: compute/cache)")
     p.add_argument("--cache-dir", type=Path, default=DEFAULT_CACHE, help="spectra cache root")
-    p.add_argument("--kernels", type=int, default=d.kernels, help="initial kernel count")
-    p.add_argument("--max-kernels", type=int, default=None, help="budget (default 7 x kernels)")
-    p.add_argument("--steps", type=int, default=d.steps, help="optimisation steps")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--points-per-step", type=int, default=d.points_per_step)
+    p.add_argument(
+        "--preset",
+        choices=sorted(PRESETS),
+        default=DEFAULT_PRESET,
+        help="base configuration (ALGORITHM.md §7b); the flags below override it",
+    )
+    p.add_argument("--kernels", type=int, default=None, help=f"initial kernel count ({d.kernels})")
+    p.add_argument("--max-kernels", type=int, default=None, help="budget (default from preset)")
+    p.add_argument("--steps", type=int, default=None, help=f"optimisation steps ({d.steps})")
+    p.add_argument("--seed", type=int, default=None, help=f"random seed ({d.seed})")
+    p.add_argument("--points-per-step", type=int, default=None, help=f"({d.points_per_step})")
     p.add_argument("--no-densify", action="store_true", help="keep the kernel count fixed")
+    p.add_argument(
+        "--polish-colors",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help=f"least-squares colour solve after the last step ({d.polish_colors})",
+    )
     p.add_argument("--checkpoint-dir", type=Path, help="resumable fit: checkpoints go here")
     p.add_argument("--eval-points", type=int, default=60_000, help="surface-PSNR sample count")
     p.add_argument("--device", default=None, help="torch device (default: cuda if present)")
@@ -54,18 +66,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _params(args: argparse.Namespace) -> FitParams:
-    if args.kernels < 1 or args.steps < 0 or args.points_per_step < 1:
-        raise ValueError("--kernels and --points-per-step must be >= 1, --steps >= 0")
-    if args.max_kernels is not None and args.max_kernels < args.kernels:
-        raise ValueError("--max-kernels must be >= --kernels")
-    return FitParams(
-        kernels=args.kernels,
-        max_kernels=args.max_kernels,
-        steps=args.steps,
-        seed=args.seed,
-        points_per_step=args.points_per_step,
-        densify=not args.no_densify,
+    params = fit_params_from(
+        {
+            "preset": args.preset,
+            "kernels": args.kernels,
+            "max_kernels": args.max_kernels,
+            "steps": args.steps,
+            "seed": args.seed,
+            "points_per_step": args.points_per_step,
+            "densify": False if args.no_densify else None,
+            "polish_colors": args.polish_colors,
+        }
     )
+    if params.kernels < 1 or params.steps < 0 or params.points_per_step < 1:
+        raise ValueError("--kernels and --points-per-step must be >= 1, --steps >= 0")
+    if params.max_kernels is not None and params.max_kernels < params.kernels:
+        raise ValueError("--max-kernels must be >= --kernels")
+    return params
 
 
 def run(args: argparse.Namespace) -> dict:

@@ -13,12 +13,10 @@ trace for the split children.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
-from hktex_engine.config import FitParams
+from hktex_engine.config import DensityRules, FitParams
 from hktex_engine.fitting.optimise import (
     KERNEL_ATTRIBUTES,
     KernelOptimiser,
@@ -29,27 +27,6 @@ from hktex_engine.fitting.optimise import (
     trace_on_surface,
     trace_transporting,
 )
-
-
-@dataclass(frozen=True)
-class DensityRules:
-    """Reference defaults of ALGORITHM.md section 7 (fractions of the total steps T)."""
-
-    prune_from: float = 0.2
-    prune_until: float = 0.6
-    prune_every: float = 0.1
-    densify_from: float = 0.05
-    densify_until: float = 0.7
-    densify_every: float = 0.04
-    window: float = 0.05
-    min_hits_fraction: float = 0.02
-    min_contribution: float = 0.07
-    error_threshold: float = 0.0208
-    max_growth: float = 0.4
-    floor: int = 100
-    split_size: float = 0.235
-    split_offset: float = 0.2
-    split_shrink: float = 1.6
 
 
 def schedule(total: int, start: float, until: float, every: float) -> list[int]:
@@ -147,13 +124,16 @@ class DensityController:
         rules: DensityRules | None = None,
         transport_theta: bool = False,
     ) -> None:
-        self.rules = rules or DensityRules()
+        self.rules = rules or params.density
         self.transport_theta = bool(transport_theta)
         r = self.rules
         self.enabled = bool(params.densify)
         self.budget = int(params.budget)
         self.total = int(total)
-        self.prune_steps = schedule(total, r.prune_from, r.prune_until, r.prune_every)
+        if r.prune_at:
+            self.prune_steps = sorted({int(round(f * total)) for f in r.prune_at} - {0, total})
+        else:
+            self.prune_steps = schedule(total, r.prune_from, r.prune_until, r.prune_every)
         self.densify_steps = schedule(total, r.densify_from, r.densify_until, r.densify_every)
         self.window = max(1, int(round(r.window * total)))
         self.faces = faces
@@ -164,6 +144,7 @@ class DensityController:
         self.step = 0  # steps completed
         self._n = 0  # current kernel count (bind / act keep it current)
         self.acc: dict[str, torch.Tensor] = {}
+        self.window_steps = {"prune": 0, "densify": 0}  # steps recorded since the last event
         self.events: list[dict] = []
 
     # --- statistics ---------------------------------------------------------------------
@@ -198,9 +179,11 @@ class DensityController:
         flat_valid = valid.reshape(-1)
         safe = idx.clamp_min(0)
         if prune_on:
+            self.window_steps["prune"] += 1
             self.acc["hits"].index_add_(0, safe, flat_valid.to(torch.float64))
             self.acc["rho_sum"].index_add_(0, safe, (rho * valid).reshape(-1))
         if dens_on:
+            self.window_steps["densify"] += 1
             # each point's L1 error spread over its final kernels by normalised contributions
             w = rho * valid
             w = w / w.sum(dim=1, keepdim=True).clamp_min(1e-30)
@@ -228,10 +211,12 @@ class DensityController:
             changed |= self._prune(model, opt)
             for key in ("hits", "rho_sum"):
                 self.acc.pop(key, None)
+            self.window_steps["prune"] = 0
         if step in self.densify_steps:
             changed |= self._densify(model, opt)
             for key in ("err_sum", "err_weight"):
                 self.acc.pop(key, None)
+            self.window_steps["densify"] = 0
         self._n = int(model.face_ids.shape[0])
         return changed
 
@@ -253,7 +238,10 @@ class DensityController:
         if "hits" not in self.acc or self.acc["hits"].shape[0] != n:
             return False
         hits = self.acc["hits"]
-        contribution = self.acc["rho_sum"] / hits.clamp_min(1.0)
+        if self.rules.stats == "step_sum":  # §7b: per-step sum, averaged over the window
+            contribution = self.acc["rho_sum"] / max(1, self.window_steps["prune"])
+        else:
+            contribution = self.acc["rho_sum"] / hits.clamp_min(1.0)
         remove = prune_mask(hits, contribution, self.rules)
         if not bool(remove.any()):
             return False
@@ -267,8 +255,11 @@ class DensityController:
         n = int(model.face_ids.shape[0])
         if "err_sum" not in self.acc or self.acc["err_sum"].shape[0] != n:
             return False
-        mean_err = self.acc["err_sum"] / self.acc["err_weight"].clamp_min(1e-30)
-        mean_err = torch.where(self.acc["err_weight"] > 0, mean_err, torch.zeros_like(mean_err))
+        if self.rules.stats == "step_sum":  # §7b: error mass per step over the window
+            mean_err = self.acc["err_sum"] / max(1, self.window_steps["densify"])
+        else:
+            mean_err = self.acc["err_sum"] / self.acc["err_weight"].clamp_min(1e-30)
+            mean_err = torch.where(self.acc["err_weight"] > 0, mean_err, torch.zeros_like(mean_err))
         clone, split = densify_selection(
             mean_err, model.threshold.detach(), self.budget, self.rules
         )
@@ -329,7 +320,7 @@ class DensityController:
         return {f"density.{k}": v.detach().cpu().numpy() for k, v in self.acc.items()}
 
     def state_meta(self) -> dict:
-        return {"step": self.step, "events": self.events}
+        return {"step": self.step, "events": self.events, "window_steps": self.window_steps}
 
     def load_state(self, arrays: dict, meta: dict, device: torch.device) -> None:
         self.acc = {
@@ -339,3 +330,4 @@ class DensityController:
         }
         self.step = int(meta["step"])
         self.events = list(meta.get("events", []))
+        self.window_steps = dict(meta.get("window_steps", {"prune": 0, "densify": 0}))

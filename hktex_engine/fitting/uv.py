@@ -21,6 +21,7 @@ import torch
 from hktex_engine.config import FitParams
 from hktex_engine.errors import SpectraError, TextureError
 from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
+from hktex_engine.fitting.colour_solve import solve_colours
 from hktex_engine.fitting.loop import LoopResult, PointStats, run_fit
 from hktex_engine.geometry.geodesics import SurfaceTracer
 from hktex_engine.geometry.mesh import Mesh
@@ -41,6 +42,9 @@ EVAL_POINTS = 60_000
 EVAL_SEED = 0
 #: points per no-grad evaluation chunk (bounded memory: P x K_s x G dot products)
 EVAL_CHUNK = 4096
+#: points per kernel for the final colour solve (``FitParams.polish_colors``): ~2-3 x K_c
+#: samples per unknown colour keep the solve well determined without dominating the fit time
+POLISH_POINTS_PER_KERNEL = 30
 
 
 @dataclass
@@ -54,14 +58,36 @@ class FitResult:
     density_events: list[dict] = field(default_factory=list)
 
 
-class UVObjective:
-    """Area-uniform points each step; target = the texture at their UV; smooth-L1 loss."""
+def point_loss(pred: torch.Tensor, target: torch.Tensor, params: FitParams) -> torch.Tensor:
+    """The fit's loss over a batch of (P, 3) colours, as ``params`` names it.
 
-    def __init__(self, mesh: Mesh, n_points: int, device: torch.device, dtype: torch.dtype):
+    ``loss_sum_rgb`` sums over the channels and averages over points (ALGORITHM.md §7b),
+    otherwise the mean runs over all 3P elements (our first reading); the two differ by
+    exactly a factor 3, which matters for the centres' plain SGD (Adam is scale-free).
+    """
+    if params.loss == "mse":
+        per = (pred - target) ** 2
+    else:
+        per = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0, reduction="none")
+    return per.sum(dim=1).mean() if params.loss_sum_rgb else per.mean()
+
+
+class UVObjective:
+    """Area-uniform points each step; target = the texture at their UV; the params' loss."""
+
+    def __init__(
+        self,
+        mesh: Mesh,
+        n_points: int,
+        device: torch.device,
+        dtype: torch.dtype,
+        params: FitParams | None = None,
+    ):
         self.mesh = mesh
         self.n_points = int(n_points)
         self.device = device
         self.dtype = dtype
+        self.params = params or FitParams()
 
     def sample(self, step: int, rng: np.random.Generator):
         face_ids, bary = sample_surface(self.mesh.vertices, self.mesh.faces, self.n_points, rng)
@@ -75,7 +101,7 @@ class UVObjective:
     def loss(self, model: HeatKernelModel, batch) -> tuple[torch.Tensor, PointStats]:
         face_ids, bary, target = batch
         pred, aux = model.albedo(face_ids, bary, return_aux=True)
-        loss = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0)
+        loss = point_loss(pred, target, self.params)
         err = (pred.detach() - target).abs().mean(dim=1)
         return loss, PointStats(err, aux["indices"], aux["rho"].detach(), face_ids, bary)
 
@@ -126,14 +152,20 @@ def initial_kernelset(
     face_ids, bary = cand_f[chosen], cand_b[chosen]
     colors = np.asarray(texture_lookup(mesh.texture, cand_uv[chosen]), dtype=np.float64)
     base = colors.mean(axis=0)
-    lo, hi = threshold_range
+    theta, eta = rng.uniform(0.0, np.pi, n), 1.0 + 99.0 * rng.random(n)
+    if params.init == "later":  # ALGORITHM.md §7b: softer, more varied footprints
+        threshold = 0.3 + 0.7 * rng.random(n) ** 0.7
+        sharpness = 10.0 + 40.0 * rng.random(n) ** 0.5
+    else:
+        lo, hi = threshold_range
+        threshold, sharpness = rng.uniform(lo, hi, n), 10.0 + 40.0 * rng.random(n)
     return KernelSet(
         face_ids=face_ids.astype(np.int64),
         barycentrics=bary,
-        theta=rng.uniform(0.0, np.pi, n),
-        eta=1.0 + 99.0 * rng.random(n),
-        threshold=np.minimum(rng.uniform(lo, hi, n), 1.0 - 1e-4),
-        sharpness=10.0 + 40.0 * rng.random(n),
+        theta=theta,
+        eta=eta,
+        threshold=np.minimum(threshold, 1.0 - 1e-4),
+        sharpness=sharpness,
         colors=np.clip(colors - base, -1.0, 1.0),
         base_color=np.clip(base, 0.0, 1.0),
         kernel_config=params.kernel,
@@ -218,7 +250,7 @@ def fit_uv(
     psnr_init = psnr(evaluate_albedo(model, eval_f, eval_b), eval_target)
     timings["eval_s"] = time.perf_counter() - t1
 
-    objective = UVObjective(mesh, params.points_per_step, dev, field_.dtype)
+    objective = UVObjective(mesh, params.points_per_step, dev, field_.dtype, params)
     fingerprint = {
         "task": "fit_uv",
         "mesh": mesh.content_hash,
@@ -242,6 +274,11 @@ def fit_uv(
         transport_theta=transport_theta,
     )
     timings["fit_s"] = loop.seconds
+    polish = None
+    if params.polish_colors and loop.steps > 0:
+        t_polish = time.perf_counter()
+        polish = solve_colours(model, mesh, POLISH_POINTS_PER_KERNEL * len(model), rng)
+        timings["polish_s"] = time.perf_counter() - t_polish
 
     t2 = time.perf_counter()
     pred = evaluate_albedo(model, eval_f, eval_b)
@@ -259,6 +296,8 @@ def fit_uv(
         "final_loss": float(np.mean(loop.losses[-50:])) if loop.losses else None,
         "device": str(dev),
     }
+    if polish is not None:
+        metrics["colour_solve"] = polish
     kernelset = model.to_kernelset(fitting={"task": "fit_uv", "steps": loop.steps})
     t3 = time.perf_counter()
     nbytes = kernelset_bytes(kernelset)
