@@ -76,10 +76,10 @@ def create_job(
 
 
 def _check_params(params: dict) -> None:
-    from hktex_engine.config import FitParams
+    from hktex_engine.config import fit_params_from
 
     try:
-        fp = FitParams(**{k: v for k, v in params.items() if k not in EXTRA_FIT_FIELDS})
+        fp = fit_params_from({k: v for k, v in params.items() if k not in EXTRA_FIT_FIELDS})
     except (TypeError, ValueError) as exc:
         raise HTTPException(422, detail=f"invalid fit params: {exc}") from None
     if fp.max_kernels is not None and fp.max_kernels < fp.kernels:

@@ -43,8 +43,14 @@ class SpectralConfigIn(_Strict):
 
 
 class FitParamsIn(_Strict):
-    """Fitting parameters; every field optional (engine defaults, FitParams)."""
+    """Fitting parameters; every field optional (the preset's values, FitParams)."""
 
+    preset: Literal["earlier", "later"] | None = Field(
+        None, description="base configuration (ALGORITHM.md §7b); the other fields override it"
+    )
+    polish_colors: bool | None = Field(
+        None, description="solve the colours by least squares for the final footprints"
+    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)

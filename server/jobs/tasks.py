@@ -120,11 +120,10 @@ def _load_mesh_with_hash(ctx: TaskContext, mesh_hash: str, prefer_id: str | None
 
 
 def fit_params(raw: dict[str, Any]):
-    """FitParams from the API's params object (only the fields given; engine defaults else)."""
-    from hktex_engine.config import FitParams
+    """FitParams from the API's params object (its preset, then only the fields given)."""
+    from hktex_engine.config import fit_params_from
 
-    known = {k: v for k, v in raw.items() if v is not None and k in FitParams.__dataclass_fields__}
-    return FitParams(**known)
+    return fit_params_from(raw)
 
 
 def run_fit(ctx: TaskContext) -> Outcome:
