@@ -30,6 +30,7 @@ from torch import nn
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels.knn import CandidateSearch
+from hktex_engine.kernels.ranking import select_by_rule
 from hktex_engine.spectra.interpolation import RowCache, SpectralField
 
 THETA_RANGE = (0.0, math.pi)
@@ -54,6 +55,11 @@ GRAD_CHUNK_POINTS = 1024
 ROWS_CACHE_BYTES = 256 * 2**20
 #: Extra nearest centres fetched before the exact per-pair cut to ``K_s`` (see ``_exact_cut``).
 KNN_MARGIN = 8
+#: Relative round-off of the index's distances (float32 ``|q|^2 + |c|^2 - 2 q.c``) against
+#: ``|q|^2 + max |c|^2``; generous, it only decides when a row is cut over all centres.
+CUT_ROUNDOFF = 1e-5
+#: Bytes of one chunk of per-pair differences in :func:`_exhaustive_cut`.
+EXHAUSTIVE_CHUNK_BYTES = 32 * 2**20
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
 BARY_TOL = 1e-3
 
@@ -419,12 +425,28 @@ class HeatKernelModel(nn.Module):
         return self._blend(face_ids, bary, cand, return_aux, d2)
 
     def albedo_bruteforce(
-        self, face_ids: torch.Tensor, bary: torch.Tensor, return_aux: bool = False
+        self,
+        face_ids: torch.Tensor,
+        bary: torch.Tensor,
+        return_aux: bool = False,
+        exact_search: bool = False,
     ) -> torch.Tensor | tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Albedo with every kernel a candidate (no KNN); for tests and tiny sets."""
+        """Albedo without the KNN index, for tests and tiny sets.
+
+        ``exact_search=False``: every kernel is a candidate (no ``K_s`` cut).
+        ``exact_search=True``: the candidates are the exact ``K_s`` nearest centres by the
+        tie rule (distance, then kernel index) over all kernels, as :meth:`albedo` defines
+        them; the two must then agree exactly.
+        """
         face_ids = _long(face_ids, self.field.device)
         bary = _query_float(bary, self.field.device, self.field.dtype)
-        return self._blend(face_ids, bary, None, return_aux)
+        if not exact_search:
+            return self._blend(face_ids, bary, None, return_aux)
+        self._ensure_knn()
+        k_s = min(self.config.k_search, len(self))
+        emb_y = self.field.embedding_at(face_ids, bary).detach()
+        cand, d2 = _exhaustive_cut(emb_y, self._centre_emb, k_s)
+        return self._blend(face_ids, bary, cand, return_aux, d2)
 
     def responses(
         self, face_ids: torch.Tensor, bary: torch.Tensor, cand: torch.Tensor | None = None
@@ -445,16 +467,31 @@ class HeatKernelModel(nn.Module):
         if cand is not None and self._grad_needed() and not bary.requires_grad:
             kid, rho_top = self._top_responses(face_ids, bary, cand, d2)
         else:
-            if cand is not None and d2 is not None and not self._grad_needed():
+            if cand is None:
+                n = face_ids.shape[0]
+                cand = torch.arange(len(self), device=self.field.device).expand(n, -1)
+            if not self._grad_needed():
                 self._ensure_cache()
-                r = _pair_ratio(
-                    face_ids, bary, cand, *self._terms, self.field, self.config.sigma_b, d2=d2
+                r, d2 = _pair_ratio(
+                    face_ids,
+                    bary,
+                    cand,
+                    *self._terms,
+                    self.field,
+                    self.config.sigma_b,
+                    d2=d2,
+                    return_d2=True,
                 )
                 rho = soft_step(r, self.threshold[cand], self.sharpness[cand])
             else:
                 rho, cand = self.responses(face_ids, bary, cand)
+                if d2 is None:
+                    self._ensure_knn()
+                    emb_y = self.field.embedding_at(face_ids, bary.detach())
+                    d2 = ((emb_y[:, None, :] - self._centre_emb[cand]) ** 2).sum(dim=2)
             k_c = min(self.config.k_blend, rho.shape[1])
-            rho_top, pos = torch.topk(rho, k_c, dim=1)
+            pos = select_by_rule(rho.detach(), d2.detach(), cand, k_c)
+            rho_top = rho.gather(1, pos)
             kid = cand.gather(1, pos)
         weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
         denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
@@ -546,11 +583,13 @@ def _pair_ratio(
     field: SpectralField,
     sigma_b: float,
     d2: torch.Tensor | None = None,
-) -> torch.Tensor:
+    return_d2: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """``r`` for points and their candidates ``local`` (rows of the per-kernel terms).
 
     ``d2``: squared embedding distances (P, C) when the caller has them (the exact candidate
-    cut computes them anyway); they must not need a gradient.
+    cut computes them anyway); they must not need a gradient. ``return_d2``: return
+    ``(r, d2)`` (the tie rule ranks by both).
     """
     h = None
     if not torch.is_grad_enabled() and PAIR_PATH != "bmm":
@@ -560,7 +599,8 @@ def _pair_ratio(
     if d2 is None:
         emb_y = field.embedding_at(face_ids, bary)
         d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
-    return h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    return (r, d2) if return_d2 else r
 
 
 @torch.no_grad()
@@ -590,7 +630,9 @@ def _rank_pairs(
     h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field, phi_y)
     r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
     rho = soft_step(r, threshold[local], sharpness[local])
-    top = local.gather(1, torch.topk(rho, k_c, dim=1).indices)  # (P, k_c)
+    # tie rule (ALGORITHM.md 5): ``local`` indexes the sorted unique kernels, so its order
+    # is the kernel-index order
+    top = local.gather(1, select_by_rule(rho, d2, local, k_c))  # (P, k_c)
     p, g, k = phi_y.shape
     rows = torch.arange(p, device=phi_y.device)[:, None, None] * g + nodes[top]  # (P, k_c, 4)
     phi4 = phi_y.view(p * g, k).index_select(0, rows.reshape(-1)).view(p, k_c, -1, k)
@@ -623,21 +665,47 @@ class _PairResponse(torch.autograd.Function):
 def _exact_cut(
     emb_y: torch.Tensor, emb_c: torch.Tensor, cand: torch.Tensor, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``k`` nearest of a slightly larger candidate list, by per-pair distances.
+    """The exact ``k`` nearest centres, from a slightly larger candidate list.
 
     faiss ranks with float32 ``|q|^2 + |c|^2 - 2 q.c`` computed differently for small and
     large query batches, so the ``K_s``-th neighbour (and hence a colour) could depend on the
-    rest of the batch. Re-ranking ``K_s + margin`` candidates by the directly computed
-    ``|c - q|^2`` of each pair (elementwise, so the same bits whatever the batch), ties broken
-    by kernel index, makes the cut a function of the point alone (unless faiss's round-off
-    exceeds the margin's distance gap). The distances are the ones the kernel weight
-    ``w_j(y)`` uses, so they are computed once. Returns ``(cand (P, k), d2 (P, k))``.
+    rest of the batch. The ``K_s + margin`` candidates are re-ranked by the directly computed
+    ``|c - q|^2`` of each pair (elementwise, so the same bits whatever the batch) under the
+    tie rule (distance, then kernel index), so the cut is a function of the point alone.
+    It is exact when the ``k``-th distance is below the farthest fetched one by more than the
+    index's round-off (then no centre left out can be nearer or tied); rows where it is not
+    (ties across the margin: clones, symmetric layouts) are cut over all centres instead
+    (:func:`_exhaustive_cut`). The distances are the ones ``w_j(y)`` uses, so they are
+    computed once. Returns ``(cand (P, k), d2 (P, k))``, nearest first.
     """
-    cand, _ = torch.sort(cand, dim=1)  # ties then resolve by kernel index (stable sort)
     diff = emb_c[cand] - emb_y[:, None, :]
     d2 = (diff * diff).sum(dim=2)
-    d2, order = torch.sort(d2, dim=1, stable=True)
-    return cand.gather(1, order[:, :k]), d2[:, :k]
+    pos = select_by_rule(-d2, None, cand, k)
+    out, out_d2 = cand.gather(1, pos), d2.gather(1, pos)
+    if cand.shape[1] >= emb_c.shape[0]:
+        return out, out_d2  # every centre was a candidate
+    scale = (emb_y * emb_y).sum(dim=1) + (emb_c * emb_c).sum(dim=1).max()
+    unsafe = out_d2[:, -1] >= d2.max(dim=1).values - CUT_ROUNDOFF * scale
+    rows = torch.nonzero(unsafe).squeeze(1)
+    if rows.numel():
+        out[rows], out_d2[rows] = _exhaustive_cut(emb_y[rows], emb_c, k)
+    return out, out_d2
+
+
+def _exhaustive_cut(emb_y: torch.Tensor, emb_c: torch.Tensor, k: int):
+    """The ``k`` nearest of all centres under the tie rule, by direct per-pair distances
+    (chunks of points bounded by :data:`EXHAUSTIVE_CHUNK_BYTES`): ``(cand, d2)``."""
+    n = emb_c.shape[0]
+    rows = max(1, EXHAUSTIVE_CHUNK_BYTES // max(1, n * emb_c.shape[1] * emb_c.element_size()))
+    cands, d2s = [], []
+    for sl in _slices(emb_y.shape[0], rows):
+        diff = emb_c[None, :, :] - emb_y[sl, None, :]
+        d2 = (diff * diff).sum(dim=2)
+        kid = torch.arange(n, device=emb_c.device).expand(d2.shape[0], -1)
+        pos = select_by_rule(-d2, None, kid, k)
+        cands.append(pos)
+        d2s.append(d2.gather(1, pos))
+    return torch.cat(cands), torch.cat(d2s)
 
 
 def _h_by_node_matmul(
