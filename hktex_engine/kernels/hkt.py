@@ -11,6 +11,16 @@ only narrows dtypes, which a reader gets back as ordinary numbers without scale 
   float16 threshold near 1 (spacing 4.9e-4) would shift responses visibly;
 - ``base_color`` float32.
 
+Quantised storage (``save_hkt(..., quantised=True)``, format version 2) keeps the same member
+names and meanings but stores each per-kernel member as a ``uint8`` array of bit-packed
+integer codes (big-endian bit order, ``np.packbits``), with the codes' meaning in the
+manifest's ``quantisation`` table (see :data:`QUANT_BITS` and docs/kernels.md): face ids in
+the bits their largest id needs, two barycentrics on the simplex grid, ``theta`` linear over
+``[0, pi]``, ``eta`` and ``sharpness`` linear in their logarithm, ``threshold`` at cell
+midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
+own range. :func:`load_hkt` reads versions 1 and 2; a version-1 file is written unless
+quantisation is asked for, so older readers keep reading what they read before.
+
 Reading is defensive because a file may come from anyone: members are checked for size before
 they are decompressed (zip bombs), ``.npy`` headers are parsed with pickles refused, and
 shapes, ranges, finiteness and the mesh / spectral-config hashes are checked before use.
@@ -30,10 +40,19 @@ import numpy as np
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
-from hktex_engine.kernels.model import KernelSet
+from hktex_engine.kernels.model import (
+    ETA_RANGE,
+    SHARPNESS_RANGE,
+    THETA_RANGE,
+    THRESHOLD_RANGE,
+    KernelSet,
+)
 
 FORMAT = "hktex-kernels"
-VERSION = 1
+VERSION = 2
+#: The version a plain (unquantised) file is written as; readers of version 1 read it.
+PLAIN_VERSION = 1
+QUANTISED_VERSION = 2
 #: Members and their columns (0 = a vector). ``base_color`` has 3 entries, not one per kernel.
 MEMBERS: dict[str, int] = {
     "face_ids": 0,
@@ -51,6 +70,24 @@ MAX_KERNELS = 10_000_000
 MAX_MANIFEST_BYTES = 1 << 20
 #: An ``.npy`` header is at most this long for our arrays (format v1 pads to 64-byte blocks).
 NPY_HEADER_BYTES = 4096
+#: Default code widths of the quantised format (face ids: the bits their largest id needs).
+#: Chosen on a fitted spot set (docs/decisions.md): the albedo moves by far less than the
+#: fit's own error, <= 0.1 dB of surface PSNR, at <= 12 bytes per kernel zipped.
+QUANT_BITS: dict[str, int] = {
+    "barycentrics": 8,
+    "theta": 8,
+    "eta": 8,
+    "threshold": 10,
+    "sharpness": 8,
+    "colors": 8,
+}
+#: How each member's codes map to values: (map, lo, hi); colours carry per-channel ranges.
+_QUANT_MAPS: dict[str, tuple[str, float, float]] = {
+    "theta": ("linear", THETA_RANGE[0], THETA_RANGE[1]),
+    "eta": ("log", ETA_RANGE[0], ETA_RANGE[1]),
+    "threshold": ("mid", THRESHOLD_RANGE[0], 1.0),
+    "sharpness": ("log", SHARPNESS_RANGE[0], SHARPNESS_RANGE[1]),
+}
 _COMPACT_FLOATS = {
     "barycentrics": np.float16,
     "theta": np.float16,
@@ -62,10 +99,20 @@ _COMPACT_FLOATS = {
 }
 
 
-def save_hkt(kernelset: KernelSet, path: str | Path, compact: bool = True) -> Path:
-    """Validate and write ``kernelset`` to ``path`` atomically (temporary file + rename)."""
+def save_hkt(
+    kernelset: KernelSet,
+    path: str | Path,
+    compact: bool = True,
+    quantised: bool = False,
+    bits: dict[str, int] | None = None,
+) -> Path:
+    """Validate and write ``kernelset`` to ``path`` atomically (temporary file + rename).
+
+    ``quantised=True`` writes the version-2 format (``bits`` overrides :data:`QUANT_BITS`
+    per member); otherwise version 1, ``compact`` choosing narrow dtypes or float32/int64.
+    """
     path = Path(path)
-    payload = _encode(kernelset, compact)  # validates before anything touches the disk
+    payload = _encode(kernelset, compact, quantised, bits)  # validates before any disk write
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         tmp.write_bytes(payload)
@@ -75,21 +122,39 @@ def save_hkt(kernelset: KernelSet, path: str | Path, compact: bool = True) -> Pa
     return path
 
 
-def hkt_bytes(kernelset: KernelSet, compact: bool = True) -> dict[str, int]:
+def hkt_bytes(
+    kernelset: KernelSet,
+    compact: bool = True,
+    quantised: bool = False,
+    bits: dict[str, int] | None = None,
+) -> dict[str, int]:
     """Storage of a kernel set: ``raw`` (sum of the stored arrays) and ``zip`` (the file)."""
-    raw = sum(a.nbytes for a in _stored_arrays(kernelset, compact).values())
-    return {"raw": int(raw), "zip": len(_encode(kernelset, compact))}
+    if quantised:
+        arrays, _ = _quantised_arrays(kernelset, _bits(kernelset, bits))
+    else:
+        arrays = _stored_arrays(kernelset, compact)
+    raw = sum(a.nbytes for a in arrays.values())
+    return {"raw": int(raw), "zip": len(_encode(kernelset, compact, quantised, bits))}
 
 
-def _encode(kernelset: KernelSet, compact: bool) -> bytes:
+def _encode(
+    kernelset: KernelSet,
+    compact: bool,
+    quantised: bool = False,
+    bits: dict[str, int] | None = None,
+) -> bytes:
     """The whole ``.hkt`` file in memory (a kernel set is a few MB at most)."""
     kernelset.validate()
     if kernelset.color_space not in COLOR_SPACES:
         raise KernelSetError(f"color_space must be one of {COLOR_SPACES}")
-    arrays = _stored_arrays(kernelset, compact)
+    extra: dict = {}
+    if quantised:
+        arrays, extra["quantisation"] = _quantised_arrays(kernelset, _bits(kernelset, bits))
+    else:
+        arrays = _stored_arrays(kernelset, compact)
     manifest = {
         "format": FORMAT,
-        "version": VERSION,
+        "version": QUANTISED_VERSION if quantised else PLAIN_VERSION,
         "count": len(kernelset),
         "mesh_hash": kernelset.mesh_hash,
         "config_hash": kernelset.config_hash,
@@ -98,6 +163,7 @@ def _encode(kernelset: KernelSet, compact: bool) -> bytes:
         "fitting": kernelset.fitting,
         "extras": kernelset.extras,
         "dtypes": {name: str(arr.dtype) for name, arr in arrays.items()},
+        **extra,
     }
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=9) as zf:
@@ -140,7 +206,10 @@ def load_hkt(
         with zipfile.ZipFile(path) as zf:
             manifest = _read_manifest(zf)
             n = manifest["count"]
-            arrays = {name: _read_member(zf, name, n, cols) for name, cols in MEMBERS.items()}
+            if manifest["version"] == QUANTISED_VERSION:
+                arrays = _read_quantised(zf, manifest, n)
+            else:
+                arrays = {name: _read_member(zf, name, n, cols) for name, cols in MEMBERS.items()}
     except zipfile.BadZipFile as exc:
         raise KernelSetError(f"not a kernel-set file (not a valid zip archive: {exc})") from exc
     except (OSError, EOFError, zlib.error, zipfile.LargeZipFile) as exc:
@@ -240,3 +309,187 @@ def _kernel_config(manifest: dict) -> KernelConfig:
     if not np.isfinite([cfg.diffusion_time, cfg.sigma_b]).all():
         raise KernelSetError("manifest kernel config must be finite")
     return cfg
+
+
+# --------------------------------------------------------------------------- quantised format
+
+
+def _bits(ks: KernelSet, bits: dict[str, int] | None) -> dict[str, int]:
+    """Code widths per member: :data:`QUANT_BITS` overridden by ``bits``, face ids minimal."""
+    out = dict(QUANT_BITS)
+    for name, b in (bits or {}).items():
+        if name not in QUANT_BITS:
+            raise KernelSetError(f"no quantisation width for member {name!r}")
+        if not isinstance(b, int | np.integer) or not 1 <= int(b) <= 16:
+            raise KernelSetError(f"quantisation width of {name!r} must be in [1, 16], not {b!r}")
+        out[name] = int(b)
+    out["face_ids"] = max(1, int(np.asarray(ks.face_ids).max()).bit_length())
+    return out
+
+
+def pack_codes(codes: np.ndarray, bits: int) -> np.ndarray:
+    """Unsigned integer codes (< 2**bits) as a ``uint8`` bit stream, ``bits`` per code."""
+    c = np.asarray(codes, dtype=np.uint64).ravel()
+    shifts = np.arange(bits - 1, -1, -1, dtype=np.uint64)
+    planes = ((c[:, None] >> shifts[None, :]) & np.uint64(1)).astype(np.uint8)
+    return np.packbits(planes.ravel())
+
+
+def unpack_codes(data: np.ndarray, count: int, bits: int) -> np.ndarray:
+    """Inverse of :func:`pack_codes`: ``count`` codes (int64) from the bit stream."""
+    planes = np.unpackbits(np.asarray(data, dtype=np.uint8))[: count * bits].reshape(count, bits)
+    weights = (1 << np.arange(bits - 1, -1, -1, dtype=np.int64)).astype(np.int64)
+    return planes.astype(np.int64) @ weights
+
+
+def _encode_scalar(x: np.ndarray, kind: str, lo: float, hi: float, bits: int) -> np.ndarray:
+    top = (1 << bits) - 1
+    x = np.asarray(x, dtype=np.float64)
+    if kind == "log":
+        x, lo, hi = np.log(np.maximum(x, lo)), np.log(lo), np.log(hi)
+    t = (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
+    if kind == "mid":
+        return np.clip(np.floor(t * (top + 1)), 0, top).astype(np.int64)
+    return np.clip(np.round(t * top), 0, top).astype(np.int64)
+
+
+def _decode_scalar(q: np.ndarray, kind: str, lo: float, hi: float, bits: int) -> np.ndarray:
+    top = (1 << bits) - 1
+    q = np.asarray(q, dtype=np.float64)
+    if kind == "mid":
+        return lo + (q + 0.5) * (hi - lo) / (top + 1)
+    if kind == "log":
+        out = np.exp(np.log(lo) + q * (np.log(hi) - np.log(lo)) / top)
+    else:
+        out = lo + q * (hi - lo) / top
+    return np.clip(out, lo, hi)
+
+
+def _encode_bary(bary: np.ndarray, bits: int) -> np.ndarray:
+    """(b1, b2) on the grid ``k / S``, ``S = 2**bits - 1``, with ``q1 + q2 <= S`` (b0 >= 0)."""
+    top = (1 << bits) - 1
+    b = np.asarray(bary, dtype=np.float64)[:, 1:] * top
+    q = np.clip(np.round(b), 0, top).astype(np.int64)
+    over = q.sum(axis=1) > top
+    # lower the coordinate rounded up the most; one step suffices (each rounds by <= 1/2)
+    col = np.argmax(q - b, axis=1)
+    q[over, col[over]] -= 1
+    return q
+
+
+def _decode_bary(q: np.ndarray, bits: int) -> np.ndarray:
+    top = (1 << bits) - 1
+    b12 = np.asarray(q, dtype=np.float64) / top
+    return np.concatenate([1.0 - b12.sum(axis=1, keepdims=True), b12], axis=1)
+
+
+def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
+    """Packed members and the manifest's ``quantisation`` table of a kernel set."""
+    table: dict[str, dict] = {
+        "face_ids": {"bits": bits["face_ids"], "map": "integer"},
+        "barycentrics": {"bits": bits["barycentrics"], "map": "simplex"},
+    }
+    arrays = {
+        "face_ids": pack_codes(np.asarray(ks.face_ids, dtype=np.int64), bits["face_ids"]),
+        "barycentrics": pack_codes(
+            _encode_bary(ks.barycentrics, bits["barycentrics"]).T, bits["barycentrics"]
+        ),
+    }
+    for name, (kind, lo, hi) in _QUANT_MAPS.items():
+        table[name] = {"bits": bits[name], "map": kind, "lo": lo, "hi": hi}
+        arrays[name] = pack_codes(
+            _encode_scalar(getattr(ks, name), kind, lo, hi, bits[name]), bits[name]
+        )
+    colors = np.asarray(ks.colors, dtype=np.float64)
+    lo_c, hi_c = colors.min(axis=0), colors.max(axis=0)
+    codes = np.stack(
+        [_encode_scalar(colors[:, c], "linear", lo_c[c], hi_c[c], bits["colors"]) for c in range(3)]
+    )  # (3, N): channel-planar
+    table["colors"] = {
+        "bits": bits["colors"],
+        "map": "linear",
+        "lo": lo_c.tolist(),
+        "hi": hi_c.tolist(),
+    }
+    arrays["colors"] = pack_codes(codes, bits["colors"])
+    arrays["base_color"] = np.asarray(ks.base_color, dtype=np.float32)
+    return arrays, table
+
+
+def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np.ndarray]:
+    """Members of a version-2 file, decoded and checked against the manifest's table."""
+    table = manifest.get("quantisation")
+    if not isinstance(table, dict):
+        raise KernelSetError("quantised kernel-set file lacks its quantisation table")
+    out: dict[str, np.ndarray] = {}
+    for name, cols in MEMBERS.items():
+        if name == "base_color":
+            out[name] = _read_member(zf, name, n, cols)
+            continue
+        spec = table.get(name)
+        if not isinstance(spec, dict):
+            raise KernelSetError(f"quantisation table lacks member {name!r}")
+        bits = spec.get("bits")
+        limit = 32 if name == "face_ids" else 16
+        if not isinstance(bits, int) or not 1 <= bits <= limit:
+            raise KernelSetError(f"quantisation width of {name!r} must be in [1, {limit}]")
+        values = 2 if name == "barycentrics" else max(cols, 1)
+        codes = unpack_codes(_read_packed(zf, name, n * values * bits), n * values, bits)
+        if name == "face_ids":
+            out[name] = codes
+        elif name == "barycentrics":
+            q = codes.reshape(2, n).T
+            if (q.sum(axis=1) > (1 << bits) - 1).any():
+                raise KernelSetError("barycentrics must be non-negative rows summing to one")
+            out[name] = _decode_bary(q, bits)
+        elif name == "colors":
+            lo, hi = _bounds(spec, name, 3)
+            q = codes.reshape(3, n)
+            out[name] = np.stack(
+                [_decode_scalar(q[c], "linear", lo[c], hi[c], bits) for c in range(3)], axis=1
+            )
+        else:
+            kind, lo_ref, hi_ref = _QUANT_MAPS[name]
+            lo, hi = _bounds(spec, name, 1)
+            if spec.get("map") != kind or (lo[0], hi[0]) != (lo_ref, hi_ref):
+                raise KernelSetError(f"quantisation of {name!r} is not the format's ({kind})")
+            out[name] = _decode_scalar(codes, kind, lo_ref, hi_ref, bits)
+    return out
+
+
+def _bounds(spec: dict, name: str, width: int) -> tuple[np.ndarray, np.ndarray]:
+    try:
+        lo = np.atleast_1d(np.asarray(spec["lo"], dtype=np.float64))
+        hi = np.atleast_1d(np.asarray(spec["hi"], dtype=np.float64))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise KernelSetError(f"quantisation range of {name!r} is missing or not numbers") from exc
+    if lo.shape != (width,) or hi.shape != (width,):
+        raise KernelSetError(f"quantisation range of {name!r} must have {width} entries")
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (lo <= hi).all()):
+        raise KernelSetError(f"quantisation range of {name!r} must be finite with lo <= hi")
+    return lo, hi
+
+
+def _read_packed(zf: zipfile.ZipFile, name: str, n_bits: int) -> np.ndarray:
+    """A packed member: a 1-D ``uint8`` array of exactly ``ceil(n_bits / 8)`` bytes."""
+    expect = -(-n_bits // 8)
+    try:
+        info = zf.getinfo(f"{name}.npy")
+    except KeyError:
+        raise KernelSetError(f"kernel-set file lacks member {name!r}") from None
+    limit = NPY_HEADER_BYTES + expect
+    if info.file_size > limit:
+        raise KernelSetError(f"member {name!r} is larger than its kernels can need")
+    with zf.open(info) as fh:
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise KernelSetError(f"member {name!r} is larger than its kernels can need")
+    try:
+        arr = np.lib.format.read_array(io.BytesIO(data), allow_pickle=False)
+    except (ValueError, EOFError, OSError) as exc:
+        raise KernelSetError(f"member {name!r} is not a plain .npy array: {exc}") from exc
+    if arr.dtype != np.uint8 or arr.shape != (expect,):
+        raise KernelSetError(
+            f"member {name!r} must be {expect} packed bytes (uint8), got {arr.dtype} {arr.shape}"
+        )
+    return arr
