@@ -14,6 +14,13 @@
 
 Writes ``service.json`` and ``service.md`` (machine, command, numbers). Loopback only; every
 loop is bounded by its duration and a request timeout.
+
+``--compare REV`` (issue 11) instead measures the query path of the server code at git
+revision ``REV`` against the working tree's, in the same run on the same machine: each server
+(``hktex serve`` with the old ``hktex_server`` extracted by ``git archive`` first on
+``PYTHONPATH``, then the current one) gets the same seeded kernel set (spectra computed here,
+random kernels: no fit), the same query load, and ``/v1/health`` probed throughout the load.
+Results go to ``service_compare.json`` and ``service.md``.
 """
 
 from __future__ import annotations
@@ -22,12 +29,15 @@ import argparse
 import asyncio
 import contextlib
 import json
+import os
 import shlex
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import httpx
 import numpy as np
 from _machine import machine_info
 from hktex_client import AsyncClient, Client
@@ -99,11 +109,31 @@ async def query_load(
                 except Exception as exc:  # counted and reported, never hidden
                     errors.append(f"{type(exc).__name__}: {exc}"[:200])
 
+    health: list[float] = []
+    health_errors: list[str] = []
+
+    async def probe_health(stop_at: float) -> None:
+        """/v1/health every 50 ms during the load: the API must stay responsive."""
+        async with httpx.AsyncClient(base_url=url, timeout=30) as client:
+            while time.monotonic() < stop_at:
+                t0 = time.monotonic()
+                try:
+                    (await client.get("/v1/health")).raise_for_status()
+                    health.append(time.monotonic() - t0)
+                except Exception as exc:  # counted and reported
+                    health_errors.append(f"{type(exc).__name__}: {exc}"[:200])
+                await asyncio.sleep(0.05)
+
     start = time.monotonic()
     stop_at = start + duration
-    await asyncio.gather(*(one_client(i, stop_at) for i in range(clients)))
+    await asyncio.gather(probe_health(stop_at), *(one_client(i, stop_at) for i in range(clients)))
     elapsed = time.monotonic() - start
     return {
+        "health": {
+            "requests": len(health),
+            "errors": len(health_errors),
+            **_percentiles(health),
+        },
         "clients": clients,
         "points_per_request": points,
         "duration_s": round(elapsed, 2),
@@ -156,6 +186,185 @@ def health_under_fits(url: str, mesh_id: str, duration: float) -> dict:
     }
 
 
+def seed_kernelset(url: str, data_dir: Path, work: Path, kernels: int) -> tuple[str, int, dict]:
+    """The demo blob uploaded, its spectra computed here into the service's cache (adopted by
+    ``POST /spectra``), and ``kernels`` random kernels published as a kernel set: the same
+    query cost as a fitted set of that size, without a fit. Deterministic (seed 0)."""
+    from hktex_server.storage.blobs import BlobStore
+    from hktex_server.storage.db import Database, KernelSetRow, new_id, now
+
+    from hktex_engine.config import SpectralConfig
+    from hktex_engine.evaluation.synthetic import textured_demo, write_textured_obj
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.kernels.model import KernelSet
+    from hktex_engine.spectra.grid import SpectraCache
+
+    v, f, uv, tex = textured_demo(subdivisions=4, texture_size=64)
+    obj = write_textured_obj(work / "bench.obj", v, f, uv, tex)
+    with httpx.Client(base_url=url, timeout=300) as c:
+        mesh = c.post("/v1/meshes", files={"mesh": (obj.name, obj.read_bytes())})
+        mesh.raise_for_status()
+        mesh = mesh.json()
+        config = SpectralConfig.from_dict(SPECTRAL)
+        spectra = SpectraCache(data_dir / "spectra").get_or_compute(load_mesh(obj), config)
+        r = c.post(f"/v1/meshes/{mesh['id']}/spectra", json=SPECTRAL)
+        r.raise_for_status()
+        spectra_id = r.json()["id"]
+    rng = np.random.default_rng(0)
+    n_faces = int(spectra.faces.shape[0])
+    ks = KernelSet(
+        face_ids=rng.integers(0, n_faces, kernels),
+        barycentrics=rng.dirichlet(np.ones(3), kernels),
+        theta=rng.uniform(0, np.pi, kernels),
+        eta=1 + 99 * rng.uniform(size=kernels),
+        threshold=rng.uniform(0.5, 0.95, kernels),
+        sharpness=10 + 40 * rng.uniform(size=kernels),
+        colors=rng.uniform(-0.5, 0.5, (kernels, 3)),
+        base_color=np.full(3, 0.5),
+        mesh_hash=spectra.mesh_hash,
+        config_hash=spectra.config_hash,
+    )
+    store = BlobStore(data_dir)
+    tmp = store.temp_path(".hkt")
+    save_hkt(ks, tmp)
+    rel, _digest, size = store.publish_file(tmp, "kernelsets", ".hkt")
+    ks_id = new_id("kst")
+    db = Database(f"sqlite:///{(data_dir / 'hktex.db').resolve()}")
+    with db.write() as s:
+        s.add(
+            KernelSetRow(
+                id=ks_id,
+                owner="local",
+                job_id=None,
+                mesh_id=mesh["id"],
+                spectra_id=spectra_id,
+                path=rel,
+                bytes=size,
+                n_kernels=kernels,
+                metrics={},
+                manifest={"seeded": True},
+                created_at=now(),
+            )
+        )
+    db.dispose()
+    info = {"vertices": mesh["n_vertices"], "faces": n_faces, "kernels": kernels}
+    return ks_id, n_faces, info
+
+
+def old_server_path(rev: str, work: Path) -> Path:
+    """``hktex_server`` as it was at ``rev`` (``git archive`` of ``server/``), for PYTHONPATH."""
+    repo = Path(__file__).resolve().parents[1]
+    dest = work / "old-server"
+    dest.mkdir()
+    archive = subprocess.run(
+        ["git", "-C", str(repo), "archive", rev, "server"], check=True, capture_output=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    (dest / "server").rename(dest / "hktex_server")
+    return dest
+
+
+def compare(args: argparse.Namespace, command: str) -> int:
+    """Old server code vs the working tree's, same kernel set and load, one run."""
+    threads = {
+        v: str(args.threads) for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    }
+    runs = {}
+    with tempfile.TemporaryDirectory(prefix="hktex-bench-") as tmp:
+        work = Path(tmp)
+        old = old_server_path(args.compare, work)
+        for label, extra in (
+            (
+                f"old ({args.compare})",
+                {"PYTHONPATH": f"{old}{os.pathsep}" + os.environ.get("PYTHONPATH", "")},
+            ),
+            ("new (working tree)", {}),
+        ):
+            data = work / label.split()[0]
+            env = {**threads, "HKTEX_TOKENS": "", **extra}
+            load = os.getloadavg()[0]
+            with spawned_service(data, 0, env) as url:
+                ks_id, n_faces, ks_info = seed_kernelset(url, data, work, args.kernels)
+                with httpx.Client(base_url=url, timeout=300) as c:  # warm every worker
+                    rng = np.random.default_rng(1)
+                    rows = np.column_stack(
+                        [rng.integers(0, n_faces, 64).astype(float), rng.dirichlet(np.ones(3), 64)]
+                    )
+                    body = {
+                        "face_ids": rows[:, 0].astype(int).tolist(),
+                        "barycentrics": rows[:, 1:].tolist(),
+                    }
+                    for _ in range(8):
+                        c.post(f"/v1/kernelsets/{ks_id}/albedo", json=body).raise_for_status()
+                queries = asyncio.run(
+                    query_load(url, ks_id, n_faces, args.clients, args.points, args.duration)
+                )
+            queries["load_average_before"] = round(load, 2)
+            print(f"{label}: {queries}", file=sys.stderr)
+            runs[label] = queries
+    old_q, new_q = runs.values()
+    speedup = new_q["points_per_s"] / max(1, old_q["points_per_s"])
+    result = {
+        "command": command.strip(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": machine_info(
+            note="loopback; load generator and server share the machine's cores"
+        ),
+        "kernelset": ks_info,
+        "runs": runs,
+        "speedup_points_per_s": round(speedup, 2),
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "service_compare.json").write_text(json.dumps(result, indent=2) + "\n")
+    write_compare_md(args.out, result)
+    print(json.dumps({"speedup": result["speedup_points_per_s"], "runs": runs}))
+    ok = all(r["errors"] == 0 and r["health"]["errors"] == 0 for r in runs.values())
+    return 0 if ok else 1
+
+
+def write_compare_md(out: Path, result: dict) -> None:
+    m = result["machine"]
+    rows = [
+        "| | " + " | ".join(result["runs"]) + " |",
+        "|---|" + "---|" * len(result["runs"]),
+    ]
+
+    def row(name: str, fn) -> None:
+        rows.append(f"| {name} | " + " | ".join(fn(r) for r in result["runs"].values()) + " |")
+
+    row("load average before", lambda r: str(r["load_average_before"]))
+    row("requests / errors", lambda r: f"{r['requests']} / {r['errors']}")
+    row("throughput", lambda r: f"{r['requests_per_s']} req/s, {r['points_per_s']:,} points/s")
+    row("latency p50 / p99 / max", lambda r: f"{r['p50_ms']} / {r['p99_ms']} / {r['max_ms']} ms")
+    row(
+        "/v1/health during the load: n / errors",
+        lambda r: f"{r['health']['requests']} / {r['health']['errors']}",
+    )
+    row(
+        "/v1/health p50 / p99 / max",
+        lambda r: f"{r['health']['p50_ms']} / {r['health']['p99_ms']} / {r['health']['max_ms']} ms",
+    )
+    q = next(iter(result["runs"].values()))
+    md = [
+        "# Service benchmark: albedo queries, old vs new server (issue 11)",
+        "",
+        f"Command: `{result['command']}`  ",
+        f"Machine: {m['platform']}, {m['cpus']} CPUs, Python {m['python']}, load average at "
+        f"start {m['load_average_1min']} (a shared machine: other work ran beside it)  ",
+        f"Date: {result['date']}",
+        "",
+        f"Kernel set: {result['kernelset']['kernels']} seeded kernels on "
+        f"{result['kernelset']['vertices']:,} vertices; {q['clients']} concurrent clients, "
+        f"{q['points_per_request']:,} points per NPY request, {q['duration_s']} s each.",
+        "",
+        *rows,
+        "",
+        f"Throughput new / old: **{result['speedup_points_per_s']}x**.",
+    ]
+    (out / "service.md").write_text("\n".join(md) + "\n")
+
+
 def write_results(out: Path, result: dict) -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "service.json").write_text(json.dumps(result, indent=2) + "\n")
@@ -202,10 +411,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--health-duration", type=float, default=20.0)
     parser.add_argument("--threads", type=int, default=1, help="CPU threads per process")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    parser.add_argument(
+        "--compare", metavar="REV", help="old server code at this git revision vs the current"
+    )
+    parser.add_argument("--kernels", type=int, default=1200, help="seeded kernels (--compare)")
     args = parser.parse_args(argv)
     command = "python benchmarks/service.py " + shlex.join(
         argv if argv is not None else sys.argv[1:]
     )
+    if args.compare:
+        return compare(args, command)
     with tempfile.TemporaryDirectory(prefix="hktex-bench-") as tmp:
         work = Path(tmp)
         (work / "data").mkdir()

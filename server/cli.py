@@ -6,6 +6,7 @@ Flags override the ``HKTEX_*`` environment, which overrides the defaults (Settin
 from __future__ import annotations
 
 import argparse
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,36 @@ def cmd_serve(args: argparse.Namespace) -> dict:
     settings.check_bind()  # ValueError -> one stderr line, exit 2
     app = create_app(settings)
     print(f"hktex serve: http://{settings.host}:{settings.port}/v1 (data {settings.data_dir})")
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level)
+    config = uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=args.log_level,
+        timeout_graceful_shutdown=settings.shutdown_grace_seconds,
+    )
+    _prompt_server(config).run()
     return {"stopped": True}
+
+
+def _abort_compute(app) -> None:
+    svc = getattr(app.state, "svc", None)
+    if svc is not None and svc.compute is not None:
+        svc.compute.abort()
+
+
+def _prompt_server(config):
+    """uvicorn's server, but SIGTERM/SIGINT also fail the in-flight queries and renders at
+    once (503): uvicorn waits for open requests before it runs the app's shutdown, and a
+    render can take minutes. Streams (job events) get ``shutdown_grace_seconds``."""
+    import uvicorn
+
+    class PromptServer(uvicorn.Server):
+        def handle_exit(self, sig, frame) -> None:
+            super().handle_exit(sig, frame)
+            # not in the signal handler itself: abort takes locks the loop may hold
+            threading.Thread(target=_abort_compute, args=(config.app,), daemon=True).start()
+
+    return PromptServer(config)
 
 
 def cmd_worker(args: argparse.Namespace) -> dict:

@@ -42,6 +42,11 @@ class Settings(BaseSettings):
         ge=1,
         description="CPU threads per job process (torch/OpenMP/BLAS); default cores // workers",
     )
+    warm_jobs: bool = Field(
+        True,
+        description="fork job processes from a forkserver with the engine imported "
+        "(False: a fresh interpreter per job, paying the imports)",
+    )
     fit_eval_points: int | None = Field(
         None, ge=100, description="surface points for a fit's final metrics (engine default)"
     )
@@ -58,8 +63,39 @@ class Settings(BaseSettings):
     max_jobs_per_owner: int = Field(50, description="queued + running jobs an owner may hold")
     max_running_per_owner: int = Field(2, description="fair share: running jobs per owner")
     validate_timeout_seconds: float = 120.0
-    query_cache_size: int = 4
-    query_chunk_points: int = 65_536
+    query_cache_size: int = Field(4, ge=1, description="warm kernel sets per compute worker")
+    query_chunk_points: int = Field(65_536, ge=1)
+
+    # request-time compute (albedo queries, renders): server/api/compute.py
+    compute_workers: int | None = Field(
+        None, ge=1, le=256, description="worker processes for queries and renders; default cores"
+    )
+    compute_threads: int = Field(1, ge=1, le=256, description="CPU threads per compute worker")
+    compute_timeout_seconds: float = Field(
+        60.0, gt=0, description="run time one query or render may take before it is killed"
+    )
+    compute_memory_bytes: int = Field(
+        4 * 1024**3, ge=64 * 1024**2, description="address space one request may add (RLIMIT_AS)"
+    )
+    compute_recycle_bytes: int = Field(
+        1536 * 1024**2, ge=64 * 1024**2, description="a worker this big after a request retires"
+    )
+    max_queued_per_owner: int = Field(64, ge=1, description="waiting compute requests (then 429)")
+    max_render_samples: int = Field(
+        2**26, ge=1, description="width x height x spp of one render (then 422)"
+    )
+    shutdown_grace_seconds: float = Field(
+        3.0, ge=0, description="on SIGTERM, how long open requests and streams may finish"
+    )
+
+    def compute_workers_resolved(self) -> int:
+        """Compute workers: the setting, else one per core this process may run on."""
+        if self.compute_workers:
+            return self.compute_workers
+        try:
+            return max(1, len(os.sched_getaffinity(0)))
+        except (AttributeError, OSError):  # not Linux
+            return max(1, os.cpu_count() or 1)
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+from typing import Any
 
 from fastapi import Request
 from hktex_server.api.querycache import QueryCache
@@ -21,6 +22,7 @@ class ServiceState:
     render_lock: threading.Semaphore = field(default_factory=lambda: threading.Semaphore(1))
     workers: int = 0
     devices: list[str] = field(default_factory=list)
+    compute: Any = None  # hktex_server.api.compute.ComputePool: queries and renders
 
 
 def service(request: Request) -> ServiceState:

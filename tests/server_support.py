@@ -167,3 +167,85 @@ class LiveServer:
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
         self.thread.join(30)
+
+
+# A tiny spectral grid: seeding a kernel set costs about a second, no job needed.
+SEED_SPECTRA = {"angles": 3, "anisotropies": [1.0, 10.0], "k": 16, "k_iso": 9}
+
+
+def seed_kernelset(
+    url: str,
+    data_dir: Path,
+    obj: Path,
+    headers: dict | None = None,
+    owner: str = "local",
+    database_url: str | None = None,
+) -> dict[str, str]:
+    """A real mesh, spectra and kernel set in a running service without running a job.
+
+    The mesh is uploaded over HTTP; its spectra are computed here into the service's spectra
+    cache (which ``POST /spectra`` adopts as ready); a random kernel set is published to its
+    blob store with a row, as a finished fit leaves them. Returns the ids.
+    """
+    import httpx
+    from hktex_server.storage.blobs import BlobStore
+    from hktex_server.storage.db import KernelSetRow, new_id, now
+
+    from hktex_engine.config import SpectralConfig
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.kernels.model import KernelSet
+    from hktex_engine.spectra.grid import SpectraCache
+    from tests.kernels_support import random_kernels
+
+    with httpx.Client(base_url=url, headers=headers or {}, timeout=60) as c:
+        r = c.post("/v1/meshes", files={"mesh": (obj.name, obj.read_bytes(), "text/plain")})
+        assert r.status_code in (200, 201), r.text
+        mesh = r.json()
+        config = SpectralConfig.from_dict(SEED_SPECTRA)
+        spectra = SpectraCache(Path(data_dir) / "spectra").get_or_compute(load_mesh(obj), config)
+        r = c.post(f"/v1/meshes/{mesh['id']}/spectra", json=SEED_SPECTRA)
+        assert r.status_code == 200, r.text
+        spectra_id = r.json()["id"]
+    k = random_kernels(spectra, 12)
+    ks = KernelSet(
+        face_ids=k["face_ids"],
+        barycentrics=k["bary"],
+        theta=k["theta"],
+        eta=k["eta"],
+        threshold=k["threshold"],
+        sharpness=k["sharpness"],
+        colors=k["colors"],
+        base_color=k["base_color"],
+        mesh_hash=spectra.mesh_hash,
+        config_hash=spectra.config_hash,
+    )
+    store = BlobStore(Path(data_dir))
+    tmp = store.temp_path(".hkt")
+    save_hkt(ks, tmp)
+    rel, _digest, size = store.publish_file(tmp, "kernelsets", ".hkt")
+    ks_id = new_id("kst")
+    db = Database(database_url or f"sqlite:///{Path(data_dir) / 'hktex.db'}")
+    with db.write() as s:
+        s.add(
+            KernelSetRow(
+                id=ks_id,
+                owner=owner,
+                job_id=None,
+                mesh_id=mesh["id"],
+                spectra_id=spectra_id,
+                path=rel,
+                bytes=size,
+                n_kernels=len(ks),
+                metrics={},
+                manifest={"seeded": True},
+                created_at=now(),
+            )
+        )
+    db.dispose()
+    return {
+        "mesh_id": mesh["id"],
+        "spectra_id": spectra_id,
+        "kernelset_id": ks_id,
+        "n_faces": str(mesh["n_faces"]),
+    }

@@ -361,7 +361,10 @@ def test_validation_runs_in_a_killable_process(patch_obj, tmp_path) -> None:
         validate_mesh(garbage, None, 5000, "ply", 120)
     with pytest.raises(ValidationTimeout):
         validate_mesh(patch_obj, None, 5000, "obj", 0.0)
-    assert not multiprocessing.active_children(), "a validator outlived its timeout"
+    validators = [
+        p for p in multiprocessing.active_children() if not p.name.startswith("hktex-compute")
+    ]  # the compute workers of a live server in this process are meant to stay
+    assert not validators, "a validator outlived its timeout"
 
 
 def test_upload_validation_timeout_is_422(tmp_path, patch_obj) -> None:

@@ -15,7 +15,6 @@ JSON otherwise. One array per body keeps the binary path to a single ``np.load``
 from __future__ import annotations
 
 import io
-import json
 from typing import Literal
 
 import numpy as np
@@ -35,7 +34,6 @@ from sqlalchemy import select
 router = APIRouter(prefix="/v1", tags=["kernelsets"])
 
 NPY = "application/x-npy"
-BARY_TOL = 1e-3
 JSON_BYTES_PER_POINT = 96  # generous: "[0.123456789, ...]" per point plus an id
 
 
@@ -102,24 +100,32 @@ def get_kernelset_file(
     )
 
 
-def _warm(svc: ServiceState, owner: str, kernelset_id: str):
+def _locate(svc: ServiceState, owner: str, kernelset_id: str) -> dict[str, str]:
+    """Where a compute worker finds the kernel set (404 for another owner's, 409 if its
+    spectra are gone); the worker loads and keeps it warm itself."""
     with svc.db.read() as s:
         row = own(s, KernelSetRow, kernelset_id, owner, "kernel set")
         spectra = s.get(SpectraRow, row.spectra_id)
     if spectra is None or spectra.state != "ready" or not spectra.path:
         raise HTTPException(409, detail="the spectra of this kernel set are not available")
-    return svc.queries.get(
-        kernelset_id,
-        str(svc.store.abs(spectra.path)),
-        str(svc.store.abs(row.path)),
-        spectra.mesh_hash,
-    )
+    return {
+        "kernelset_id": kernelset_id,
+        "spectra_path": str(svc.store.abs(spectra.path)),
+        "hkt_path": str(svc.store.abs(row.path)),
+        "mesh_hash": spectra.mesh_hash,
+    }
 
 
 @router.post(
     "/kernelsets/{kernelset_id}/albedo",
     response_model=schemas.AlbedoResponse,
-    responses={200: {"content": {NPY: {}}}, 409: {"description": "spectra unavailable"}, **ERRORS},
+    responses={
+        200: {"content": {NPY: {}}},
+        409: {"description": "spectra unavailable"},
+        429: {"description": "too many of your requests are waiting"},
+        503: {"description": "over its time budget, or shutting down"},
+        **ERRORS,
+    },
     openapi_extra=_query_body_doc(),
 )
 async def albedo(
@@ -129,7 +135,8 @@ async def albedo(
     owner: str = Depends(current_owner),
     svc: ServiceState = Depends(service),
 ):
-    """Colours at surface locations or points, in chunks on a warm query state."""
+    """Colours at surface locations or points, in chunks on a warm query state in a compute
+    worker (parallel across workers, fair across owners, bounded in time and memory)."""
     limit_points = svc.settings.max_batch_points
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype == NPY:
@@ -146,21 +153,19 @@ async def albedo(
         raise HTTPException(
             413, detail=f"{count} points in one {ctype} batch; the limit is {limit_points}"
         )
-    warm = await run_in_threadpool(_warm, svc, owner, kernelset_id)
-    chunk = svc.settings.query_chunk_points
-    if kind == "points":
-        colors = await run_in_threadpool(warm.colors_at_points, points, chunk)
-    else:
-        _check_faces(face_ids, bary, warm.n_faces)
-        colors = await run_in_threadpool(warm.colors, face_ids, bary, chunk)
-    if NPY in request.headers.get("accept", ""):
-        buf = io.BytesIO()
-        np.save(buf, np.ascontiguousarray(colors, dtype="<f4"), allow_pickle=False)
-        return Response(buf.getvalue(), media_type=NPY)
-    return Response(
-        json.dumps({"count": int(len(colors)), "colors": colors.tolist()}, separators=(",", ":")),
-        media_type="application/json",
-    )
+    ks = await run_in_threadpool(_locate, svc, owner, kernelset_id)
+    npy = NPY in request.headers.get("accept", "")
+    payload = {
+        "ks": ks,
+        "kind": kind,
+        "face_ids": face_ids,
+        "bary": bary,
+        "points": points,
+        "chunk": svc.settings.query_chunk_points,
+        "npy": npy,
+    }
+    body = await svc.compute.run(request, owner, "albedo", payload)
+    return Response(body, media_type=NPY if npy else "application/json")
 
 
 def _parse_npy(body: bytes, kind: str):
@@ -210,22 +215,18 @@ def _rows(values: list[list[float]], width: int, what: str) -> np.ndarray:
 def _check_finite(arr: np.ndarray) -> None:
     if not np.isfinite(arr).all():
         raise HTTPException(422, detail="the query holds NaN or infinite values")
+    if arr.size and np.abs(arr).max() > schemas.MAX_COORDINATE:
+        raise HTTPException(
+            422, detail=f"the query holds values beyond +-{schemas.MAX_COORDINATE:g}"
+        )
 
 
 def _face_ids(col: np.ndarray) -> np.ndarray:
     if np.any(col != np.round(col)):
         raise HTTPException(422, detail="face ids must be whole numbers")
-    if len(col) and (col.min() < 0 or col.max() > 2**31):
-        raise HTTPException(422, detail="face ids out of range")
+    if len(col) and (col.min() < 0 or col.max() > schemas.MAX_FACE_ID):
+        raise HTTPException(422, detail=f"face ids out of range 0..{schemas.MAX_FACE_ID}")
     return col.astype(np.int64)
-
-
-def _check_faces(face_ids: np.ndarray, bary: np.ndarray, n_faces: int) -> None:
-    if len(face_ids) and (face_ids.min() < 0 or face_ids.max() >= n_faces):
-        bad = int(face_ids[(face_ids < 0) | (face_ids >= n_faces)][0])
-        raise HTTPException(422, detail=f"face id {bad} is out of range 0..{n_faces - 1}")
-    if len(bary) and (bary.min() < -BARY_TOL or np.abs(bary.sum(axis=1) - 1).max() > BARY_TOL):
-        raise HTTPException(422, detail="barycentrics must be >= 0 and sum to 1 per row")
 
 
 @router.get(
@@ -233,11 +234,13 @@ def _check_faces(face_ids: np.ndarray, bary: np.ndarray, n_faces: int) -> None:
     response_class=Response,
     responses={
         200: {"content": {"image/png": {}}},
-        503: {"description": "renderer unavailable"},
+        429: {"description": "too many of your requests are waiting"},
+        503: {"description": "renderer unavailable, over its time budget, or shutting down"},
         **ERRORS,
     },
 )
 async def render(
+    request: Request,
     kernelset_id: str,
     width: int = Query(256, ge=16, le=2048),
     height: int = Query(256, ge=16, le=2048),
@@ -248,25 +251,16 @@ async def render(
     owner: str = Depends(current_owner),
     svc: ServiceState = Depends(service),
 ) -> Response:
-    """A PNG preview (Mitsuba), rendered on a worker thread, one render at a time."""
-    warm = await run_in_threadpool(_warm, svc, owner, kernelset_id)
-    png = await run_in_threadpool(_render_png, svc, warm, width, height, view, spp)
+    """A PNG preview (Mitsuba) rendered in a compute worker under the request budgets; the
+    render stops when the client disconnects."""
+    samples = width * height * spp
+    if samples > svc.settings.max_render_samples:
+        raise HTTPException(
+            422,
+            detail=f"width x height x spp = {samples} exceeds the limit "
+            f"{svc.settings.max_render_samples}; ask for fewer pixels or samples",
+        )
+    ks = await run_in_threadpool(_locate, svc, owner, kernelset_id)
+    payload = {"ks": ks, "width": width, "height": height, "view": view, "spp": spp}
+    png = await svc.compute.run(request, owner, "render", payload)
     return Response(png, media_type="image/png")
-
-
-def _render_png(svc: ServiceState, warm, width: int, height: int, view: str, spp: int) -> bytes:
-    from hktex_engine.errors import HKTexError
-
-    try:
-        from hktex_engine.render.mitsuba import render_png
-    except Exception as exc:  # mitsuba missing or broken on this host
-        raise HTTPException(503, detail=f"renderer unavailable: {exc}") from None
-    with svc.render_lock:
-        try:
-            return render_png(
-                warm.spectra, warm.kernelset, width=width, height=height, view=view, spp=spp
-            )
-        except ValueError as exc:
-            raise HTTPException(422, detail=str(exc)) from None
-        except HKTexError as exc:
-            raise HTTPException(503, detail=f"render failed: {type(exc).__name__}: {exc}") from None

@@ -8,7 +8,7 @@ seconds (float, UTC); ids are opaque strings. Floats in requests must be finite:
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -34,7 +34,9 @@ class SpectralConfigIn(_Strict):
     """Spectral grid and numerics; every field optional (engine defaults, ALGORITHM.md)."""
 
     angles: int | None = Field(None, ge=2, le=64)
-    anisotropies: list[float] | None = Field(None, min_length=1, max_length=64)
+    anisotropies: list[Annotated[float, Field(ge=0, le=10_000)]] | None = Field(
+        None, min_length=1, max_length=64, description="eta values of the grid, ascending"
+    )
     k: int | None = Field(None, ge=2, le=2048)
     k_iso: int | None = Field(None, ge=3, le=2048)
     rotation: Literal["block", "full"] | None = None
@@ -87,12 +89,27 @@ class JobCreate(_Strict):
         return self
 
 
-class AlbedoRequest(_Strict):
-    """Either surface locations (``face_ids`` + ``barycentrics``) or ``points`` in file units."""
+#: Face ids are int32 in the engine; anything past this cannot name a face (and a JSON integer
+#: past 64 bits must be a 422, not an OverflowError in numpy).
+MAX_FACE_ID = 2**31 - 1
+#: Coordinates beyond this overflow float32 arithmetic in the closest-point search; no mesh
+#: file in any unit is that large.
+MAX_COORDINATE = 1e15
 
-    face_ids: list[int] | None = None
-    barycentrics: list[list[float]] | None = None
-    points: list[list[float]] | None = None
+FaceId = Annotated[int, Field(ge=0, le=MAX_FACE_ID)]
+Barycentric = Annotated[float, Field(ge=-1.0, le=2.0)]
+Coordinate = Annotated[float, Field(ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+
+
+class AlbedoRequest(_Strict):
+    """Either surface locations (``face_ids`` + ``barycentrics``) or ``points`` in file units.
+
+    Every number is range-checked here, so out-of-range values are a 422 naming the field
+    (face ids fit int32, barycentrics lie near [0, 1], coordinates are finite and bounded)."""
+
+    face_ids: list[FaceId] | None = None
+    barycentrics: list[list[Barycentric]] | None = None
+    points: list[list[Coordinate]] | None = None
 
     @model_validator(mode="after")
     def _one_kind(self) -> AlbedoRequest:

@@ -46,14 +46,35 @@ class InvalidMesh(Exception):
         self.input_error = input_error
 
 
-def _context() -> Any:
+#: What the forkserver imports once: the mesh stack for validation, the query engine (numpy,
+#: torch) for the compute workers (``compute_child``), and the job code with the engine's
+#: spectra and UV fitting for warm job processes (``supervisor._fork_job``); all fork from it.
+PRELOAD = [
+    "__main__",
+    "hktex_engine.geometry.mesh",
+    "torch",
+    "hktex_engine.kernels.query",
+    "hktex_server.api.compute_child",
+    "hktex_server.jobs.worker_main",
+    "hktex_server.jobs.tasks",
+    "hktex_engine.spectra.grid",
+    "hktex_engine.kernels.hkt",
+    "hktex_engine.fitting.uv",
+]
+
+
+def context() -> Any:
+    """The service's one forkserver context (validation children and compute workers)."""
     global _CTX
     with _CTX_LOCK:
         if _CTX is None:
             ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["__main__", "hktex_engine.geometry.mesh"])
+            ctx.set_forkserver_preload(PRELOAD)
             _CTX = ctx
         return _CTX
+
+
+_context = context
 
 
 def warm() -> None:

@@ -34,7 +34,7 @@ log = logging.getLogger("hktex.supervisor")
 @dataclass
 class _Child:
     claim: jobqueue.Claim
-    proc: subprocess.Popen
+    proc: subprocess.Popen | ForkedJob
     log_file: IO[bytes]
     cancel_seen: float | None = None
     term_sent: float | None = None
@@ -139,13 +139,18 @@ class Supervisor:
     def _spawn(self, claim: jobqueue.Claim) -> None:
         env = worker_env(self.settings, claim.device, claim.token)
         cmd = [sys.executable, "-m", "hktex_server.jobs.worker_main", claim.job_id]
-        log_file = open(self.log_dir / f"{claim.job_id}.log", "ab")  # noqa: SIM115
-        log_file.write(f"--- {time.ctime()} {self.name} device={claim.device}\n".encode())
+        log_path = self.log_dir / f"{claim.job_id}.log"
+        log_file = open(log_path, "ab")  # noqa: SIM115
+        mode = "warm" if self.settings.warm_jobs else "cold"
+        log_file.write(f"--- {time.ctime()} {self.name} device={claim.device} {mode}\n".encode())
         log_file.flush()
         try:
-            proc = subprocess.Popen(
-                cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True
-            )
+            if self.settings.warm_jobs:
+                proc = _fork_job(claim.job_id, env, log_path)
+            else:
+                proc = subprocess.Popen(
+                    cmd, env=env, stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True
+                )
         except OSError as exc:
             log_file.close()
             jobqueue.release(self.db, claim.job_id, claim.token, f"could not start worker: {exc}")
@@ -231,7 +236,45 @@ def worker_env(settings: Settings, device: str | None, token: str) -> dict[str, 
     return env
 
 
-def _signal_group(proc: subprocess.Popen, sig: int) -> None:
+class ForkedJob:
+    """A job process forked from the warm forkserver, with the part of ``Popen``'s interface
+    the supervisor uses (``pid``, ``poll``, ``wait``). The forkserver reports its exit code;
+    the process leads its own process group (``forked_main`` calls ``setsid``)."""
+
+    def __init__(self, proc) -> None:
+        self.proc = proc
+        self.pid = proc.pid
+
+    def poll(self) -> int | None:
+        return self.proc.exitcode
+
+    def wait(self, timeout: float | None = None) -> int:
+        self.proc.join(timeout)
+        code = self.proc.exitcode
+        if code is None:
+            raise subprocess.TimeoutExpired(f"job pid {self.pid}", timeout or 0)
+        return code
+
+
+def _fork_job(job_id: str, env: dict[str, str], log_path: Path) -> ForkedJob:
+    """Fork the job from the forkserver that already imported the engine (validation's
+    context, preloading the job modules): the ~13 s of imports a cold ``python -m`` paid on a
+    loaded host become a fork. Raises OSError when the forkserver cannot start it."""
+    from hktex_server.api import validation
+    from hktex_server.jobs.worker_main import forked_main
+
+    ctx = validation.context()
+    proc = ctx.Process(
+        target=forked_main, args=(job_id, env, str(log_path)), name=f"hktex-job-{job_id}"
+    )
+    try:
+        proc.start()
+    except Exception as exc:  # the forkserver failed to start or to fork
+        raise OSError(f"warm fork failed: {exc}") from exc
+    return ForkedJob(proc)
+
+
+def _signal_group(proc: subprocess.Popen | ForkedJob, sig: int) -> None:
     try:
         os.killpg(proc.pid, sig)
     except (ProcessLookupError, PermissionError):

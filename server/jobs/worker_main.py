@@ -185,5 +185,67 @@ def main(argv: list[str] | None = None) -> int:
         db.dispose()
 
 
+def forked_main(job_id: str, env: dict[str, str], log_path: str) -> None:
+    """A job in a process forked from the warm forkserver (``Supervisor._spawn``): the
+    equivalent of ``python -m hktex_server.jobs.worker_main JOB_ID`` with ``env`` and its
+    output to ``log_path``, minus the seconds of imports (torch, the engine) it inherits.
+
+    The fork is a fresh address space like a new process; ``setsid`` gives it its own process
+    group so the supervisor's hard kill (SIGTERM/SIGKILL to the group) works as before. Thread
+    counts cannot come from the environment here (the libraries were loaded by the
+    forkserver), so they are set through the libraries' own calls.
+    """
+    os.setsid()
+    fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    os.environ.clear()
+    os.environ.update(env)
+    set_thread_counts(int(env.get("HKTEX_JOB_THREADS", "0") or 0))
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    sys.exit(main([job_id]))
+
+
+def set_thread_counts(threads: int) -> None:
+    """torch, faiss (OpenMP) and OpenBLAS thread pools to ``threads`` in this process."""
+    if threads < 1:
+        return
+    import ctypes
+
+    try:
+        import torch
+
+        torch.set_num_threads(threads)
+    except Exception:  # noqa: BLE001 - torch absent: nothing to size
+        pass
+    try:
+        import faiss
+
+        faiss.omp_set_num_threads(threads)
+    except Exception:  # noqa: BLE001 - faiss is optional
+        pass
+    try:  # the OpenBLAS numpy/scipy loaded (what threadpoolctl does, without the dependency)
+        with open("/proc/self/maps") as f:
+            libs = {line.split()[-1] for line in f if "openblas" in line.lower()}
+    except OSError:
+        libs = set()
+    for lib in libs:
+        try:
+            handle = ctypes.CDLL(lib)
+        except OSError:
+            continue
+        for name in (
+            "openblas_set_num_threads",
+            "openblas_set_num_threads64_",
+            "scipy_openblas_set_num_threads",
+            "scipy_openblas_set_num_threads64_",
+        ):
+            fn = getattr(handle, name, None)
+            if fn is not None:
+                fn(threads)
+                break
+
+
 if __name__ == "__main__":
     sys.exit(main())

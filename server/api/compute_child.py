@@ -1,0 +1,213 @@
+"""The inside of a compute worker process: warm kernel sets, albedo queries, renders.
+
+The forkserver imports torch and the query engine at service start (``validation.PRELOAD``),
+so a new worker is a fork of a process that already holds them: a replacement for a killed
+worker is ready in milliseconds, not the seconds of imports. This module itself stays light
+(the API process imports it to name ``main`` as the workers' target); the engine is imported
+inside the worker.
+
+A worker serves one request at a time over its pipe. Each request runs under
+``RLIMIT_AS = current address space + the request's memory budget`` (lowered for the request,
+raised again after), so a request that would need more memory fails with ``MemoryError`` (a
+422) instead of swapping the machine; after a request that left the worker big (Dr.Jit keeps
+render buffers) the worker retires and the pool starts a fresh one.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import io
+import json
+import os
+import resource
+import signal
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from hktex_engine.errors import HKTexError, KernelSetError, SpectraError
+
+BARY_TOL = 1e-3
+PR_SET_PDEATHSIG = 1
+
+
+class RequestError(Exception):
+    """A request refused for a reason the caller can fix: sent back as ``status``."""
+
+    def __init__(self, status: int, detail: str) -> None:
+        super().__init__(detail)
+        self.status, self.detail = status, detail
+
+
+class _Warm:
+    """One kernel set ready to answer: its spectra (memory-mapped), kernels and query state."""
+
+    def __init__(self, spectra_path: str, hkt_path: str, mesh_hash: str) -> None:
+        from hktex_engine.kernels.hkt import load_hkt
+        from hktex_engine.kernels.query import AlbedoQuery
+        from hktex_engine.spectra.grid import load_spectra
+
+        self.spectra = load_spectra(spectra_path, mmap=True)
+        self.kernelset = load_hkt(hkt_path, expect_mesh_hash=mesh_hash)
+        self.query = AlbedoQuery(self.spectra, self.kernelset)
+        self.n_faces = int(self.spectra.faces.shape[0])
+
+
+class Worker:
+    """The request loop's state: an LRU of warm kernel sets."""
+
+    def __init__(self, cache_size: int) -> None:
+        self.cache_size = max(1, cache_size)
+        self.cache: OrderedDict[str, _Warm] = OrderedDict()
+
+    def warm(self, kernelset_id: str, spectra_path: str, hkt_path: str, mesh_hash: str) -> _Warm:
+        entry = self.cache.get(kernelset_id)
+        if entry is None:
+            entry = _Warm(spectra_path, hkt_path, mesh_hash)
+            self.cache[kernelset_id] = entry
+            while len(self.cache) > self.cache_size:
+                self.cache.popitem(last=False)
+        self.cache.move_to_end(kernelset_id)
+        return entry
+
+    def albedo(self, ks: dict, kind: str, face_ids, bary, points, chunk: int, npy: bool) -> bytes:
+        """The encoded answer (NPY float32 or JSON), so encoding a big answer also happens
+        here rather than on the API's event loop."""
+        warm = self.warm(**ks)
+        if kind == "points":
+            colors = _chunked(warm.query.colors_at_points, len(points), chunk, points)
+        else:
+            check_faces(face_ids, bary, warm.n_faces)
+            colors = _chunked(warm.query.colors, len(face_ids), chunk, face_ids, bary)
+        if npy:
+            buf = io.BytesIO()
+            np.save(buf, np.ascontiguousarray(colors, dtype="<f4"), allow_pickle=False)
+            return buf.getvalue()
+        body = {"count": int(len(colors)), "colors": colors.tolist()}
+        return json.dumps(body, separators=(",", ":")).encode()
+
+    def render(self, ks: dict, width: int, height: int, view: str, spp: int) -> bytes:
+        try:
+            from hktex_engine.render.mitsuba import render_png
+        except Exception as exc:  # mitsuba missing or broken on this host
+            raise RequestError(503, f"renderer unavailable: {exc}") from None
+        warm = self.warm(**ks)
+        try:
+            return render_png(
+                warm.spectra, warm.kernelset, width=width, height=height, view=view, spp=spp
+            )
+        except ValueError as exc:
+            raise RequestError(422, str(exc)) from None
+        except MemoryError:
+            raise
+        except HKTexError as exc:
+            raise RequestError(503, f"render failed: {type(exc).__name__}: {exc}") from None
+
+
+def _chunked(fn, n: int, chunk: int, *arrays) -> np.ndarray:
+    out = np.empty((n, 3), dtype=np.float32)
+    for start in range(0, n, chunk):
+        sl = slice(start, start + chunk)
+        out[sl] = fn(*(a[sl] for a in arrays))
+    return out
+
+
+def check_faces(face_ids: np.ndarray, bary: np.ndarray, n_faces: int) -> None:
+    if len(face_ids) and (face_ids.min() < 0 or face_ids.max() >= n_faces):
+        bad = int(face_ids[(face_ids < 0) | (face_ids >= n_faces)][0])
+        raise RequestError(422, f"face id {bad} is out of range 0..{n_faces - 1}")
+    if len(bary) and (bary.min() < -BARY_TOL or np.abs(bary.sum(axis=1) - 1).max() > BARY_TOL):
+        raise RequestError(422, "barycentrics must be >= 0 and sum to 1 per row")
+
+
+def _address_space() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def resident_bytes() -> int:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def _limit_memory(budget: int) -> None:
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    soft = _address_space() + budget
+    if hard != resource.RLIM_INFINITY:
+        soft = min(soft, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+def _unlimit_memory() -> None:
+    _, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (hard, hard))
+
+
+def _die_with_parent() -> None:
+    """SIGKILL when the forkserver goes (it goes when the API process goes, even by SIGKILL):
+    a worker in the middle of a long render must not outlive the service."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    except OSError:  # not Linux/glibc: the pipe's EOF still ends an idle worker
+        pass
+
+
+def handle(worker: Worker, kind: str, payload: dict[str, Any], memory: int) -> tuple:
+    """One request: ``("ok", bytes)`` or ``("error", status, detail)``."""
+    _limit_memory(memory)
+    try:
+        if kind == "albedo":
+            return ("ok", worker.albedo(**payload))
+        if kind == "render":
+            return ("ok", worker.render(**payload))
+        if kind == "ping":
+            return ("ok", b"pong")
+        return ("error", 400, f"unknown compute request {kind!r}")
+    except RequestError as exc:
+        return ("error", exc.status, exc.detail)
+    except MemoryError:
+        worker.cache.clear()  # whatever half-built state the failure left must go
+        return (
+            "error",
+            422,
+            f"the request needs more than its memory budget ({memory // 2**20} MiB): "
+            "ask for fewer points, pixels or samples",
+        )
+    except (SpectraError, KernelSetError) as exc:
+        return ("error", 409, f"{type(exc).__name__}: {exc}")
+    except (HKTexError, ValueError) as exc:
+        return ("error", 422, f"{type(exc).__name__}: {exc}")
+    except Exception as exc:  # noqa: BLE001 - a bug or a broken host: the caller gets a 503
+        return ("error", 503, f"compute failed: {type(exc).__name__}: {exc}")
+    finally:
+        _unlimit_memory()
+
+
+def main(conn: Any, threads: int, cache_size: int, recycle_bytes: int) -> None:
+    """The worker's loop until its pipe closes or it grows past ``recycle_bytes``."""
+    _die_with_parent()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the API process's to handle
+    import torch
+
+    torch.set_num_threads(max(1, threads))
+    try:
+        import faiss
+
+        faiss.omp_set_num_threads(max(1, threads))
+    except Exception:  # noqa: BLE001 - faiss is optional (torch KNN fallback)
+        pass
+    worker = Worker(cache_size)
+    while True:
+        try:
+            kind, payload, memory = conn.recv()
+        except (EOFError, OSError):
+            return
+        reply = handle(worker, kind, payload, memory)
+        retire = resident_bytes() > recycle_bytes
+        try:
+            conn.send((*reply, retire))
+        except (BrokenPipeError, OSError):
+            return
+        if retire:
+            return
