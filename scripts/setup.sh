@@ -9,6 +9,9 @@ need_apt=()
 ldconfig -p | grep -q 'libLLVM.so.19' || ldconfig -p | grep -q 'libLLVM-19' || need_apt+=(libllvm19)
 # PostgreSQL for the queue tests against a real server, and for multi-host deployments.
 [ -x "$(ls /usr/lib/postgresql/*/bin/pg_ctl 2>/dev/null | head -n1)" ] || need_apt+=(postgresql)
+# Headless Chromium and its WebDriver for the dashboard's browser tests (tests/test_dashboard_browser.py).
+command -v chromium >/dev/null || need_apt+=(chromium)
+command -v chromedriver >/dev/null || need_apt+=(chromium-driver)
 if ((${#need_apt[@]})); then
   SUDO=""; [ "$(id -u)" = 0 ] || SUDO="sudo"
   $SUDO apt-get update -q

@@ -14,9 +14,11 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.responses import JSONResponse
+from hktex_server import web
 from hktex_server.api import schemas, validation
+from hktex_server.api.assets import router as assets_router
 from hktex_server.api.auth import current_owner
-from hktex_server.api.compute import ComputePool
+from hktex_server.api.catalog import router as catalog_router
 from hktex_server.api.jobs import router as jobs_router
 from hktex_server.api.kernelsets import router as kernelsets_router
 from hktex_server.api.meshes import router as meshes_router
@@ -82,17 +84,14 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
             queries=QueryCache(settings.query_cache_size),
             workers=settings.workers if run_supervisor else 0,
             devices=detect_devices(settings),
-            compute=ComputePool(settings),
         )
         threading.Thread(target=validation.warm, name="hktex-validation-warm", daemon=True).start()
-        app.state.svc.compute.start()
         thread = SupervisorThread(settings) if run_supervisor else None
         if thread is not None:
             thread.start()
         try:
             yield
         finally:
-            app.state.svc.compute.close()
             if thread is not None:
                 thread.stop()
             db.dispose()
@@ -102,6 +101,8 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
         version=package_version(),
         description="Heat Kernel Textures: UV-free albedo fitting and queries on triangle meshes.",
         lifespan=lifespan,
+        docs_url=None,  # served offline by hktex_server.web (no CDN)
+        redoc_url=None,
     )
     app.state.tokens = tokens
     app.state.settings = settings
@@ -109,6 +110,9 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
     app.include_router(meshes_router)
     app.include_router(jobs_router)
     app.include_router(kernelsets_router)
+    app.include_router(catalog_router)
+    app.include_router(assets_router)
+    web.install(app)
     _error_handlers(app)
     return app
 
