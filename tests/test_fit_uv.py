@@ -11,9 +11,14 @@ from hktex_engine.config import FitParams, SpectralConfig
 from hktex_engine.errors import Cancelled, TextureError
 from hktex_engine.evaluation.synthetic import icosphere, textured_demo
 from hktex_engine.fitting.loop import latest_checkpoint
-from hktex_engine.fitting.uv import fit_uv, initial_kernelset, texture_gradient_energy
+from hktex_engine.fitting.uv import fit_uv, initial_kernelset
 from hktex_engine.geometry.mesh import mesh_from_arrays
-from hktex_engine.geometry.sampling import sample_surface, texture_lookup, uv_at
+from hktex_engine.geometry.sampling import (
+    sample_surface,
+    texture_gradient_energy,
+    texture_lookup,
+    uv_at,
+)
 from hktex_engine.spectra.grid import compute_spectra
 
 TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)

@@ -29,6 +29,7 @@ from hktex_engine.geometry.sampling import (
     farthest_point_sampling,
     points_from_barycentric,
     sample_surface,
+    texture_gradient_energy,
     texture_lookup,
     uv_at,
 )
@@ -104,17 +105,6 @@ class UVObjective:
         loss = point_loss(pred, target, self.params)
         err = (pred.detach() - target).abs().mean(dim=1)
         return loss, PointStats(err, aux["indices"], aux["rho"].detach(), face_ids, bary)
-
-
-def texture_gradient_energy(texture: np.ndarray) -> np.ndarray:
-    """Squared gradient magnitude of the texture (H, W), summed over channels.
-
-    Central differences with wrap-around, matching the lookup's wrap convention.
-    """
-    tex = np.asarray(texture, dtype=np.float32)
-    gx = 0.5 * (np.roll(tex, -1, axis=1) - np.roll(tex, 1, axis=1))
-    gy = 0.5 * (np.roll(tex, -1, axis=0) - np.roll(tex, 1, axis=0))
-    return (gx**2 + gy**2).sum(axis=2)
 
 
 def initial_kernelset(
@@ -277,7 +267,10 @@ def fit_uv(
     polish = None
     if params.polish_colors and loop.steps > 0:
         t_polish = time.perf_counter()
+        # the PSNR the optimiser reached, so the solve's gain (colour, not footprint) is known
+        before = psnr(evaluate_albedo(model, eval_f, eval_b), eval_target)
         polish = solve_colours(model, mesh, POLISH_POINTS_PER_KERNEL * len(model), rng)
+        polish["surface_psnr_before"] = before
         timings["polish_s"] = time.perf_counter() - t_polish
 
     t2 = time.perf_counter()

@@ -163,3 +163,14 @@ def _fps_torch(pts: torch.Tensor, k: int, first: int) -> np.ndarray:
         dist = torch.minimum(dist, ((pts - pts[idx]) ** 2).sum(dim=1))
         idx = torch.argmax(dist)
     return chosen.cpu().numpy()
+
+
+def texture_gradient_energy(texture: np.ndarray) -> np.ndarray:
+    """Squared gradient magnitude of the texture (H, W), summed over channels.
+
+    Central differences with wrap-around, matching the lookup's wrap convention.
+    """
+    tex = np.asarray(texture, dtype=np.float32)
+    gx = 0.5 * (np.roll(tex, -1, axis=1) - np.roll(tex, 1, axis=1))
+    gy = 0.5 * (np.roll(tex, -1, axis=0) - np.roll(tex, 1, axis=0))
+    return (gx**2 + gy**2).sum(axis=2)

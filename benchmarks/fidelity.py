@@ -1,0 +1,231 @@
+"""Fidelity of UV fits per configuration, against vertex colours of equal bytes.
+
+    python benchmarks/fidelity.py --meshes spot bob --run 'earlier' \\
+        --run 'later:{"steps": 1500}' --run 'later+polish' [--minutes 20] [--k 64]
+
+Each ``--run`` is ``PRESET[+polish][:JSON overrides of FitParams]`` (``spectra_k`` in the JSON
+picks the spectra's K for that run). Per mesh and run: a UV fit, then
+
+- surface PSNR (EVALUATION.md: 60,000 points, seed 0) and the kernel set's zipped bytes;
+- vertex colours **of equal bytes**: PSNR of the L0-L3 baselines interpolated linearly in
+  log(bytes) at the kernel set's zipped bytes (beyond L3 or below L0: the nearest level's
+  line extended, flagged ``extrapolated``);
+- the diagnostics of ``hktex_engine.evaluation.diagnostics`` (truncation ``exp(-t λ_K)``,
+  saturated candidates, edge/flat error split) and, with ``+polish``, the PSNR before the
+  least-squares colour solve (its gain is the colour's share of the error; what remains is
+  the footprints');
+- an error map (original | kernel bake | heat map of the error) under ``--pictures``.
+
+Every finished run is appended to ``benchmarks/results/fidelity.jsonl`` at once (a stopped
+session keeps what ran); ``--table`` rewrites ``fidelity.md`` from the JSONL.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from _machine import machine_info, machine_line
+
+from hktex_engine.config import SpectralConfig, fit_preset
+from hktex_engine.evaluation.baselines import VertexColorBaseline
+from hktex_engine.evaluation.diagnostics import edge_flat_split, saturation, truncation
+from hktex_engine.evaluation.metrics import psnr, surface_samples
+from hktex_engine.fitting.uv import evaluate_albedo, fit_uv
+from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.kernels.model import HeatKernelModel
+from hktex_engine.spectra.grid import SpectraCache
+from hktex_engine.spectra.interpolation import SpectralField
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+RESULTS = ROOT / "benchmarks" / "results"
+MESHES = {
+    "spot": ("spot/spot_triangulated.obj", "spot/spot_texture.png"),
+    "bob": ("bob/bob_tri.obj", None),
+    "blub": ("blub/blub_triangulated.obj", "blub/blub_texture.png"),
+    "cesiumman": ("cesiumman/CesiumMan.glb", None),
+    "marble_bust_01": ("marble_bust_01/marble_bust_01_4k.gltf", None),
+}
+
+
+def parse_run(spec: str) -> tuple[str, dict]:
+    """``PRESET[+polish][:JSON]`` -> (label, FitParams overrides incl. ``preset``)."""
+    head, _, js = spec.partition(":")
+    preset, _, flag = head.partition("+")
+    over = json.loads(js) if js else {}
+    if flag == "polish":
+        over["polish_colors"] = True
+    elif flag:
+        raise ValueError(f"unknown run flag {flag!r}")
+    return spec, {"preset": preset, **over}
+
+
+def vertex_colour_curve(mesh, eval_f, eval_b, target) -> list[dict]:
+    rows = []
+    for level in range(4):
+        vc = VertexColorBaseline(level)
+        vc.fit(mesh)
+        rows.append(
+            {
+                "level": level,
+                "bytes": int(vc.nbytes),
+                "psnr": psnr(vc.albedo(eval_f, eval_b), target),
+            }
+        )
+    return rows
+
+
+def at_equal_bytes(curve: list[dict], nbytes: float) -> dict:
+    """PSNR of vertex colours at ``nbytes``, linear in log(bytes) between levels."""
+    x = np.log([r["bytes"] for r in curve])
+    y = np.array([r["psnr"] for r in curve])
+    lx = np.log(nbytes)
+    i = int(np.clip(np.searchsorted(x, lx) - 1, 0, len(x) - 2))
+    value = y[i] + (y[i + 1] - y[i]) * (lx - x[i]) / (x[i + 1] - x[i])
+    return {"psnr": float(value), "extrapolated": bool(lx < x[0] or lx > x[-1])}
+
+
+def error_map_png(mesh, spectra, kernelset, path: Path, size: int = 512) -> dict:
+    """Original | kernel bake | error heat map, side by side, on the mesh's UV layout."""
+    from PIL import Image
+
+    from hktex_engine.render.bake import bake_texture
+    from hktex_engine.render.errormap import error_texture, resample_texture
+
+    baked = bake_texture(spectra, kernelset, mesh, resolution=size)
+    heat, rms = error_texture(baked.texture, mesh.texture)
+    ref = resample_texture(mesh.texture, size)
+    strip = np.concatenate([ref, baked.texture, heat], axis=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.round(np.clip(strip, 0, 1) * 255).astype(np.uint8)).save(path)
+    return {"path": str(path), "rms": rms}
+
+
+def run_one(name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pictures) -> dict:
+    params = fit_preset(over.pop("preset"), **over)
+    t0 = time.perf_counter()
+    res = fit_uv(mesh, spectra, params)
+    wall = time.perf_counter() - t0
+    m = res.metrics
+    model = HeatKernelModel.from_kernelset(res.kernelset, SpectralField(spectra))
+    pred = evaluate_albedo(model, eval_f, eval_b)
+    sat_f, sat_b = eval_f[:1000], eval_b[:1000]
+    row = {
+        "mesh": name,
+        "run": label,
+        "params": {k: v for k, v in over.items()},
+        "kernels": m["kernels"],
+        "steps": m["steps"],
+        "surface_psnr": m["surface_psnr"],
+        "bytes_zip": m["bytes_zip"],
+        "bytes_raw": m["bytes_raw"],
+        "vertex_colours_equal_bytes": at_equal_bytes(curve, m["bytes_zip"]),
+        "truncation": truncation(spectra, params.kernel.diffusion_time),
+        "saturation": saturation(model, sat_f, sat_b),
+        "split": edge_flat_split(mesh, pred, target, eval_f, eval_b),
+        "colour_solve": m.get("colour_solve"),
+        "fit_s": wall,
+        "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
+    }
+    if pictures is not None:
+        safe = "".join(c if c.isalnum() else "_" for c in label)[:60]
+        row["error_map"] = error_map_png(
+            mesh, spectra, res.kernelset, pictures / f"{name}_{safe}.png"
+        )
+    return row
+
+
+def write_table(jsonl: Path, md: Path, command: str) -> None:
+    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    lines = [
+        "# Fidelity per configuration (benchmarks/fidelity.py)",
+        "",
+        f"Command(s): `{command}` (appends; this table is every row of fidelity.jsonl).",
+        "",
+        "| mesh | run | kernels | steps | K | PSNR dB | KB zip | VC equal bytes dB | Δ dB |"
+        " before solve | edge share | PSNR edge/flat | sat/pt | >K_c | exp(-tλ_K) | fit s |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        vc = r["vertex_colours_equal_bytes"]
+        cs = r.get("colour_solve") or {}
+        sp = r["split"]
+        lines.append(
+            f"| {r['mesh']} | `{r['run']}` | {r['kernels']} | {r['steps']} | {r['spectra_k']} "
+            f"| {r['surface_psnr']:.2f} | {r['bytes_zip'] / 1e3:.1f} "
+            f"| {vc['psnr']:.2f}{'*' if vc['extrapolated'] else ''} "
+            f"| {r['surface_psnr'] - vc['psnr']:+.2f} "
+            f"| {cs.get('surface_psnr_before', float('nan')):.2f} "
+            f"| {sp['edge_error_share']:.2f} ({sp['edge_fraction']:.2f} of pts) "
+            f"| {sp['psnr_edge']:.1f} / {sp['psnr_flat']:.1f} "
+            f"| {r['saturation']['saturated_mean']:.1f} | {r['saturation']['points_over_k_blend']:.2f} "
+            f"| {r['truncation']:.2g} | {r['fit_s']:.0f} |"
+        )
+    lines += [
+        "",
+        "VC equal bytes: vertex colours L0-L3 interpolated in log(bytes) at the kernel set's",
+        "zipped bytes (* = outside L0-L3, extrapolated). Δ = HKTex minus that. 'before solve' is",
+        "the PSNR before the least-squares colour solve (runs with +polish). edge share: the",
+        "fraction of squared error on texture-edge points. sat/pt: candidates with r >= 1 per",
+        "point (brute force, 1000 points); >K_c: points with more saturated candidates than K_c.",
+        "",
+        f"Machine: {machine_line(machine_info())}",
+    ]
+    md.write_text("\n".join(lines) + "\n")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--meshes", nargs="+", default=["spot"], choices=sorted(MESHES))
+    ap.add_argument("--run", action="append", default=[], help="PRESET[+polish][:JSON]")
+    ap.add_argument("--angles", type=int, default=7)
+    ap.add_argument("--k", type=int, default=64, help="spectra K unless a run sets spectra_k")
+    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hktex" / "spectra")
+    ap.add_argument("--pictures", type=Path, default=None, help="folder for error maps")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--table", action="store_true", help="only rewrite fidelity.md")
+    args = ap.parse_args()
+    command = "python benchmarks/fidelity.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    jsonl, md = args.out / "fidelity.jsonl", args.out / "fidelity.md"
+    if args.table:
+        write_table(jsonl, md, command)
+        return 0
+    torch.manual_seed(0)
+    cache = SpectraCache(args.cache)
+    for name in args.meshes:
+        obj, tex = MESHES[name]
+        mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+        eval_f, eval_b, target = surface_samples(mesh, 60_000, 0)
+        curve = vertex_colour_curve(mesh, eval_f, eval_b, target)
+        print(name, "vertex colours", curve, flush=True)
+        for spec in args.run:
+            label, over = parse_run(spec)
+            k = int(over.pop("spectra_k", args.k))
+            spectra = cache.get_or_compute(mesh, SpectralConfig(angles=args.angles, k=k))
+            row = run_one(
+                name, mesh, spectra, label, over, curve, eval_f, eval_b, target, args.pictures
+            )
+            row["command"] = command
+            row["machine"] = machine_line(machine_info())
+            with jsonl.open("a") as fh:
+                fh.write(json.dumps(row) + "\n")
+            print(
+                json.dumps(
+                    {k: row[k] for k in ("mesh", "run", "surface_psnr", "bytes_zip")}
+                    | {"vc": row["vertex_colours_equal_bytes"], "fit_s": row["fit_s"]}
+                ),
+                flush=True,
+            )
+    write_table(jsonl, md, command)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
