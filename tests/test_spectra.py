@@ -120,10 +120,11 @@ def test_warm_solver_matches_cold_from_a_neighbour_start(mesh):
     np.testing.assert_allclose(vals[:24], cold, rtol=1e-8, atol=1e-10)
 
 
-@pytest.mark.parametrize("kwargs", [{"solver": "warm"}, {"workers": 2}])
-def test_warm_solver_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs):
+@pytest.mark.parametrize("kwargs", [{"solver": "warm"}, {"solver": "cold"}, {"workers": 2}])
+def test_other_solvers_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs):
     other = compute_spectra(mesh, TINY, **kwargs)
-    assert other.manifest["solver"]["nodes"][1]["method"] == kwargs.get("solver", "cold")
+    assert tiny.manifest["solver"]["nodes"][1]["method"] == "block"
+    assert other.manifest["solver"]["nodes"][1]["method"] == kwargs.get("solver", "block")
     src = np.array([0, 200, 400])
     for g in range(tiny.evals.shape[0]):
         a, b = np.sort(other.evals[g]), np.sort(tiny.evals[g])
@@ -176,6 +177,49 @@ def test_spectrum_slicing_equals_one_solve(mesh):
     src = np.array([0, 300])
     h_a, h_b = _heat(vals, vecs, src, 0.05), _heat(exact, exact_vecs, src, 0.05)
     assert np.linalg.norm(h_a - h_b) < 1e-8 * np.linalg.norm(h_b)
+
+
+@pytest.mark.parametrize("shift", ["below 0", "mid"])
+def test_block_solver_equals_a_dense_solve_and_plain_eigsh(mesh, shift):
+    """eigs_block against two independent computations: a dense generalised eigh (every
+    eigenvalue) and scipy's plain eigsh shift-invert (heat kernels, i.e. the eigenspaces)."""
+    import scipy.linalg as sla
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import eigsh
+
+    from hktex_engine.spectra.eigensolver import eigs_block, eigs_block_lowest
+
+    L, M, iso, _, _ = _albo_problem(mesh, 40, 0.7, 15.0)
+    k = 40
+    dense = sla.eigh(L.toarray(), np.diag(M), eigvals_only=True, subset_by_index=(0, k - 1))
+    if shift == "mid":
+        vals, vecs, method = eigs_block_lowest(L, M, k, dense[-1])
+        assert method == "block"
+    else:
+        vals, vecs, info = eigs_block(L, M, k)
+        assert info.method == "block"
+    np.testing.assert_allclose(vals, dense, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(vecs.T @ (M[:, None] * vecs), np.eye(k), atol=1e-9)
+    assert residuals(L, M, vals, vecs).max() < 1e-7
+    w, U = eigsh(L, k=k, M=sp.diags(M), sigma=-1e-6)
+    src = np.array([0, 300, 600])
+    for t in (8.133e-4, 0.0625):
+        h_a, h_b = _heat(vals, vecs, src, t), _heat(w, U, src, t)
+        assert np.linalg.norm(h_a - h_b) < 1e-8 * np.linalg.norm(h_b)
+
+
+def test_block_solver_restarts_and_falls_back(mesh):
+    """A basis too small to converge without restarting (thick restarts) still gives the
+    exact pairs; a mid shift from a far too high estimate is detected and redone below 0."""
+    from hktex_engine.spectra.eigensolver import eigs_block, eigs_block_lowest
+
+    L, M, _, exact, _ = _albo_problem(mesh, 24, 2.0, 60.0)
+    vals, vecs, info = eigs_block(L, M, 24, block=4, max_dim=40)
+    assert info.method == "block"
+    np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
+    vals, _, method = eigs_block_lowest(L, M, 24, 50 * exact[-1])
+    assert method == "block (shift below 0)"
+    np.testing.assert_allclose(vals, exact, rtol=1e-9, atol=1e-10)
 
 
 def test_too_few_vertices_is_a_spectra_error(mesh):

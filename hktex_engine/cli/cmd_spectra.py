@@ -19,6 +19,15 @@ def _floats(text: str) -> tuple[float, ...]:
     return values
 
 
+def _workers(text: str) -> int | str:
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"--workers must be an integer or 'auto': {text}") from exc
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     s = SpectralConfig()
     p = subparsers.add_parser(
@@ -56,11 +65,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--solver",
-        choices=("cold", "warm"),
-        default="cold",
-        help="cold: ARPACK per node (default); warm: block iteration from the previous node",
+        choices=("block", "cold", "warm"),
+        default="block",
+        help="block: block shift-invert Krylov-Schur per node (default); cold: ARPACK per "
+        "node; warm: block iteration from the previous node",
     )
-    p.add_argument("--workers", type=int, default=1, help="processes for cold node solves")
+    p.add_argument(
+        "--workers",
+        type=_workers,
+        default="auto",
+        help="processes for independent node solves; 'auto' (default): the free cores",
+    )
     p.add_argument("--max-vertices", type=int, default=60000, help="refuse bigger meshes")
     p.set_defaults(func=run)
 
@@ -79,6 +94,10 @@ def run(args: argparse.Namespace) -> dict:
         evecs_dtype=args.evecs_dtype,
         tangent_field=args.tangent_field,
     )
+    if args.workers == "auto":
+        from hktex_engine.spectra.grid import auto_workers
+
+        args.workers = auto_workers()
     if args.workers < 1:
         raise ValueError("--workers must be >= 1")
     if not args.mesh.is_file():

@@ -37,10 +37,14 @@ from hktex_engine.progress import NullProgress, Progress, check_cancel
 from hktex_engine.spectra.alignment import align_basis
 from hktex_engine.spectra.eigensolver import (
     SolveInfo,
+    eigs_block_lowest,
     eigs_sliced,
     eigs_warm,
     estimate_lambda_k,
 )
+
+#: Per-node solvers of the independent-node path (``solver`` of :func:`compute_spectra`).
+_NODE_SOLVERS = {"block": eigs_block_lowest, "cold": eigs_sliced}
 
 
 @dataclass
@@ -185,17 +189,26 @@ def _operator_key(theta: float, eta: float) -> tuple[float, float]:
     return (round(float(np.mod(theta, np.pi)), 12), float(eta))
 
 
-def _solve_timed(L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float) -> tuple:
-    """One cold solve, timed (runs in a worker process when ``workers > 1``)."""
+_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _solve_timed(
+    L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float, solver: str = "block"
+) -> tuple:
+    """One independent node solve, timed (runs in a worker process when ``workers > 1``)."""
     t0 = time.perf_counter()
-    vals, vecs, method = eigs_sliced(L, mass, k, estimate)
+    vals, vecs, method = _NODE_SOLVERS[solver](L, mass, k, estimate)
     return vals, vecs, time.perf_counter() - t0, method
 
 
 def _cold_solutions(
-    operators: Iterator[tuple[sp.csr_matrix, float]], mass: np.ndarray, k: int, workers: int
+    operators: Iterator[tuple[sp.csr_matrix, float]],
+    mass: np.ndarray,
+    k: int,
+    workers: int,
+    solver: str = "block",
 ) -> Iterator[tuple]:
-    """Cold solves of ``operators`` in order; with ``workers > 1`` in a process pool.
+    """Independent solves of ``operators`` in order; with ``workers > 1`` in a process pool.
 
     At most ``workers + 1`` results are in flight, so memory stays bounded by a few bases
     however large the grid. Worker processes are spawned (not forked) so no BLAS thread
@@ -203,21 +216,47 @@ def _cold_solutions(
     """
     if workers <= 1:
         for L, estimate in operators:
-            yield _solve_timed(L, mass, k, estimate)
+            yield _solve_timed(L, mass, k, estimate, solver)
         return
     ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-        pending: deque = deque()
-        try:
-            for L, estimate in operators:
-                pending.append(pool.submit(_solve_timed, L, mass, k, estimate))
-                if len(pending) > workers:
+    # one BLAS thread per worker (the workers are the parallelism; spawned children read
+    # these at start-up), unless the caller chose otherwise
+    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+    for v in _THREAD_VARS:
+        os.environ.setdefault(v, "1")
+    try:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            pending: deque = deque()
+            try:
+                for L, estimate in operators:
+                    pending.append(pool.submit(_solve_timed, L, mass, k, estimate, solver))
+                    if len(pending) > workers:
+                        yield pending.popleft().result()
+                while pending:
                     yield pending.popleft().result()
-            while pending:
-                yield pending.popleft().result()
-        finally:
-            for fut in pending:
-                fut.cancel()
+            finally:
+                for fut in pending:
+                    fut.cancel()
+    finally:  # workers are spawned on demand, so the variables stay set for the pool's life
+        for v, old in saved.items():
+            if old is None:
+                os.environ.pop(v, None)
+
+
+def auto_workers(nodes: int | None = None) -> int:
+    """Worker processes for independent node solves: the cores this process may use that
+    are not already busy (affinity count minus the 1-minute load average, rounded), at
+    least 1, at most ``nodes``. On an idle 2-core machine that is 2; on a loaded one 1."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not on Linux
+        cores = os.cpu_count() or 1
+    try:
+        busy = os.getloadavg()[0]
+    except OSError:  # pragma: no cover
+        busy = 0.0
+    free = max(1, min(cores, int(round(cores - busy))))
+    return free if nodes is None else max(1, min(free, nodes))
 
 
 def _node_plan(thetas: np.ndarray, etas: np.ndarray) -> list[tuple[int, float, float, str, int]]:
@@ -245,7 +284,7 @@ def compute_spectra(
     config: SpectralConfig | None = None,
     progress: Progress | None = None,
     out_dir: str | Path | None = None,
-    solver: Literal["cold", "warm"] = "cold",
+    solver: Literal["block", "cold", "warm"] = "block",
     workers: int = 1,
 ) -> Spectra:
     """Compute the aligned ALBO grid and the isotropic spectrum of ``mesh``.
@@ -255,8 +294,10 @@ def compute_spectra(
     published atomically, and the memory-mapped result is returned: the way to go for big
     meshes, whose grid (n x 49 x 256 floats) can exceed the memory one wants to use.
 
-    ``solver``: ``cold`` solves each distinct operator by ARPACK shift-invert (exact; nodes
-    are independent, so ``workers`` processes can share them); ``warm`` runs a shift-invert
+    ``solver``: ``block`` (default) solves each distinct operator independently by a block
+    shift-invert Krylov-Schur iteration (:func:`eigs_block_lowest`; ARPACK's stopping rule,
+    matrix-matrix work); ``cold`` by ARPACK shift-invert (:func:`eigs_sliced`); with either,
+    nodes are independent, so ``workers`` processes can share them. ``warm`` runs a shift-invert
     block iteration from the previous node's basis (sequential; measured slower at equal
     accuracy, see docs/spectra.md). Nodes whose operator equals an earlier node's
     (``theta = pi`` is ``theta = 0``; ``eta = 0`` is isotropic) are never solved twice.
@@ -264,7 +305,7 @@ def compute_spectra(
     """
     config = config or SpectralConfig()
     progress = progress or NullProgress()
-    if solver not in ("cold", "warm"):
+    if solver not in ("block", "cold", "warm"):
         raise ValueError(f"unknown solver {solver!r}")
     t_start = time.perf_counter()
     V = np.asarray(mesh.vertices, dtype=np.float64)
@@ -302,13 +343,14 @@ def compute_spectra(
         p = _work_size(config, n) if solver == "warm" else K
         k_first = max(p, need)
         weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
-        iso_vals, iso_vecs, _ = eigs_sliced(cotangent_stiffness(V, F), mass, k_first, weyl)
+        iso_solve = eigs_block_lowest if solver == "block" else eigs_sliced
+        iso_vals, iso_vecs, _ = iso_solve(cotangent_stiffness(V, F), mass, k_first, weyl)
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
         check_cancel(progress)
 
         plan = _node_plan(thetas, etas)
-        if solver == "cold":
+        if solver in _NODE_SOLVERS:
             cold_iter = _cold_solutions(
                 (
                     (assembler.stiffness(th, et), estimate_lambda_k(iso_vals[K - 1], et))
@@ -318,6 +360,7 @@ def compute_spectra(
                 mass,
                 K,
                 workers,
+                solver,
             )
         evals = np.empty((G, K))
         solve_log: list[dict] = []
