@@ -30,6 +30,18 @@ import numpy as np
 from hktex_server.settings import Settings
 
 DEFAULT_OUT = Path("hktex-demo")
+# The report's pictures: (file, caption), in the order shown; renders first, same view.
+RENDERS = (
+    ("render_kernels.png", "heat-kernel texture (service render)"),
+    ("render_uv_texture.png", "original UV texture (same view)"),
+    ("render_error_map.png", "error map on the surface (same view)"),
+)
+LAYERS = (
+    ("uv_kernel.png", "kernel set baked to the mesh's UVs"),
+    ("uv_original.png", "original texture"),
+    ("uv_error.png", "error map (RMS over RGB; black 0, pale yellow >= 0.25)"),
+)
+PICTURES = tuple(f for f, _ in RENDERS + LAYERS) + ("loss_curve.png", "demo.glb")
 
 
 def register_demo_args(parser: argparse.ArgumentParser) -> None:
@@ -65,7 +77,7 @@ def register_demo_args(parser: argparse.ArgumentParser) -> None:
         default=20000,
         help="surface points for the PSNR (EVALUATION.md uses 60,000)",
     )
-    parser.add_argument("--render-size", type=int, default=160, help="preview side in pixels")
+    parser.add_argument("--render-size", type=int, default=512, help="preview side in pixels")
     parser.add_argument("--view", default="30,20", help="preview camera 'AZIMUTH,ELEVATION'")
     parser.add_argument(
         "--timeout", type=float, default=1800.0, help="give up on a job after this many seconds"
@@ -78,6 +90,15 @@ def register_demo_args(parser: argparse.ArgumentParser) -> None:
         "OMP_NUM_THREADS if set, else 1; see docs/client.md)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.add_argument(
+        "--serve",
+        action="store_true",
+        help="after the report, keep the service running and print the dashboard URL "
+        "(Ctrl-C stops it)",
+    )
+    parser.add_argument(
+        "--port", type=int, default=0, help="port for --serve (default: a free one)"
+    )
 
 
 def _limit_threads(threads: int | None) -> int:
@@ -120,17 +141,20 @@ def _say(args: argparse.Namespace, message: str) -> None:
         print(f"[hktex demo] {message}", file=sys.stderr, flush=True)
 
 
-def _loopback_socket() -> socket.socket:
-    """A bound loopback socket on a free port, handed to uvicorn (no pick-then-bind race)."""
+def _loopback_socket(port: int = 0) -> socket.socket:
+    """A bound loopback socket (a free port by default), handed to uvicorn (no pick-then-bind
+    race)."""
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
+    sock.bind(("127.0.0.1", port))
     sock.set_inheritable(True)
     return sock
 
 
 @contextlib.contextmanager
-def running_service(settings: Settings, startup_timeout: float = 60.0) -> Iterator[str]:
+def running_service(
+    settings: Settings, startup_timeout: float = 60.0, port: int = 0
+) -> Iterator[str]:
     """Serve the API (and its embedded supervisor) on a free loopback port; yield its URL.
 
     Used by the demo, the client tests and the service benchmark, so all three run the same
@@ -139,7 +163,7 @@ def running_service(settings: Settings, startup_timeout: float = 60.0) -> Iterat
     import uvicorn
     from hktex_server.app import create_app
 
-    sock = _loopback_socket()
+    sock = _loopback_socket(port)
     port = sock.getsockname()[1]
     settings = settings.model_copy(update={"host": "127.0.0.1", "port": port})
     app = create_app(settings)
@@ -251,8 +275,15 @@ def _make_mesh(args: argparse.Namespace, out: Path) -> tuple[Path, Path]:
     return obj, obj.with_name(obj.stem + "_albedo.png")
 
 
-def _follow(client: Any, job_id: str, args: argparse.Namespace, label: str) -> Any:
-    """Stream the job's progress to stderr (SSE); fall back to polling if the stream drops."""
+def _follow(
+    client: Any,
+    job_id: str,
+    args: argparse.Namespace,
+    label: str,
+    history: list[tuple[int, float]] | None = None,
+) -> Any:
+    """Stream the job's progress to stderr (SSE); fall back to polling if the stream drops.
+    ``history`` collects (step, loss) from every event: the report's loss curve."""
     last = -1.0
     with contextlib.suppress(Exception):
         for event in client.stream_events(job_id):
@@ -262,6 +293,10 @@ def _follow(client: Any, job_id: str, args: argparse.Namespace, label: str) -> A
                 continue
             prog = data.get("progress", data) if isinstance(data, dict) else {}
             total = prog.get("total") or 0
+            loss = prog.get("loss")
+            if history is not None and isinstance(loss, int | float) and prog.get("step"):
+                if not history or history[-1][0] < prog["step"]:
+                    history.append((int(prog["step"]), float(loss)))
             frac = (prog.get("step", 0) / total) if total else 0.0
             if frac - last >= 0.1 or data.get("state") in ("succeeded", "failed", "cancelled"):
                 last = frac
@@ -351,7 +386,7 @@ def run_demo(args: argparse.Namespace) -> dict:
     threads = _limit_threads(getattr(args, "threads", None))
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
-    for stale in ("render_kernels.png", "render_uv_texture.png"):  # never show an old run's
+    for stale in PICTURES:  # never show an old run's
         (out / stale).unlink(missing_ok=True)
     data_dir = Path(args.data_dir).resolve() if args.data_dir else out / "data"
     anisotropies = [float(a) for a in str(args.anisotropies).split(",") if a.strip()]
@@ -374,7 +409,8 @@ def run_demo(args: argparse.Namespace) -> dict:
         obj, texture = _make_mesh(args, out)
     _say(args, f"mesh written to {obj}")
     settings = Settings(data_dir=data_dir, workers=1, tokens="")
-    with running_service(settings) as url, Client(url, timeout=300) as client:
+    port = args.port if getattr(args, "serve", False) else 0
+    with running_service(settings, port=port) as url, Client(url, timeout=300) as client:
         _say(args, f"service at {url} (data in {data_dir})")
         info = client.info()
         with timer.stage("upload"):
@@ -387,9 +423,10 @@ def run_demo(args: argparse.Namespace) -> dict:
                     _follow(client, spectra.job_id, args, "spectra")
                 spectra = client.get_spectra(spectra.id)
         _say(args, f"spectra {spectra.id}: {spectra.state}")
+        history: list[tuple[int, float]] = []
         with timer.stage("fit"):
             job = client.fit_uv(mesh.id, spectra=spectral, **fit)
-            job = _follow(client, job.id, args, "fit")
+            job = _follow(client, job.id, args, "fit", history)
         ks_id = job.result.kernelset_id
         if not ks_id:
             raise RuntimeError(f"fit job {job.id} succeeded without a kernel set")
@@ -411,22 +448,112 @@ def run_demo(args: argparse.Namespace) -> dict:
                 # LLVM backend missing): say why in the report instead.
                 notes.append(f"no kernel-set render: {exc}")
                 _say(args, notes[-1])
-    with timer.stage("render UV reference"):
-        try:
-            reference = _uv_reference_png(obj, texture, args)
-        except HKTexError as exc:
-            reference = None
-            notes.append(f"no UV-texture render: {exc}")
-    if reference is not None:
-        (out / "render_uv_texture.png").write_bytes(reference)
-    summary = _summary(
-        args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info, threads
-    )
-    summary["notes"] = notes
-    report = _write_report(out, summary)
-    summary["report"] = str(report)
-    summary["message"] = f"hktex demo: report written to {report}"
+        with timer.stage("bake layers"):
+            bake = _bake_layers(url, ks_id, out, notes)
+        with timer.stage("render UV reference"):
+            for name, tex, what in (
+                ("render_uv_texture.png", texture, "UV-texture"),
+                ("render_error_map.png", out / "uv_error.png", "error-map"),
+            ):
+                if not Path(tex).is_file():
+                    continue
+                try:
+                    picture = _uv_reference_png(obj, Path(tex), args)
+                except HKTexError as exc:
+                    picture = None
+                    notes.append(f"no {what} render: {exc}")
+                if picture is not None:
+                    (out / name).write_bytes(picture)
+        if _loss_curve_png(history, out / "loss_curve.png") is None:
+            notes.append("no loss curve: the fit reported no loss values")
+        summary = _summary(
+            args, mesh, spectra, job, kernelset, hkt, texture, quality, timer, info, threads
+        )
+        summary["notes"] = notes
+        summary["bake"] = bake
+        summary["loss_curve"] = [list(p) for p in history]
+        report = _write_report(out, summary)
+        summary["report"] = str(report)
+        summary["message"] = f"hktex demo: report written to {report}"
+        if getattr(args, "serve", False):
+            summary["dashboard"] = f"{url}/"
+            _serve_until_interrupted(args, url, report)
     return summary
+
+
+def _serve_until_interrupted(args: argparse.Namespace, url: str, report: Path) -> None:
+    """``--serve``: the dashboard URL on stdout (so it shows even with ``--quiet``), then keep
+    the service up until Ctrl-C or SIGTERM."""
+    import signal
+
+    print(f"hktex demo: report {report}", flush=True)
+    print(
+        f"hktex demo: dashboard at {url}/ (no token needed on loopback); Ctrl-C stops", flush=True
+    )
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        while not stop.wait(0.5):
+            pass
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        _say(args, "stopping the service")
+
+
+def _bake_layers(url: str, ks_id: str, out: Path, notes: list[str]) -> dict | None:
+    """The viewer's bake through the API (GET /v1/kernelsets/{id}/bake and its layers), saved
+    as ``uv_kernel.png``, ``uv_original.png`` and ``uv_error.png`` for the report."""
+    import httpx
+
+    base = f"{url}/v1/kernelsets/{ks_id}"
+    try:
+        with httpx.Client(timeout=600) as http:
+            info = http.get(f"{base}/bake", params={"resolution": 512})
+            info.raise_for_status()
+            bake = info.json()
+            for layer in bake["layers"]:
+                r = http.get(f"{base}/textures/{layer}", params={"resolution": 512})
+                r.raise_for_status()
+                (out / f"uv_{layer}.png").write_bytes(r.content)
+            glb = http.get(f"{base}/glb", params={"resolution": 512})
+            glb.raise_for_status()
+            (out / "demo.glb").write_bytes(glb.content)
+        return bake
+    except httpx.HTTPError as exc:
+        notes.append(f"no baked layers: {exc}")
+        return None
+
+
+def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None:
+    """The fit's loss against step (log scale) as a 720x400 PNG, drawn with Pillow."""
+    from PIL import Image, ImageDraw
+
+    path.unlink(missing_ok=True)
+    pts = [(s, v) for s, v in history if v > 0]
+    if len(pts) < 2:
+        return None
+    w, h, left, right, top, bottom = 720, 400, 70, 20, 30, 50
+    img = Image.new("RGB", (w, h), "white")
+    d = ImageDraw.Draw(img)
+    steps = np.array([p[0] for p in pts], float)
+    logs = np.log10([p[1] for p in pts])
+    x0, x1 = steps.min(), max(steps.max(), steps.min() + 1)
+    y0, y1 = logs.min(), logs.max()
+    if y1 - y0 < 1e-9:
+        y0, y1 = y0 - 0.5, y1 + 0.5
+    xs = left + (steps - x0) / (x1 - x0) * (w - left - right)
+    ys = h - bottom - (logs - y0) / (y1 - y0) * (h - top - bottom)
+    d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill=(150, 160, 170))
+    d.line(list(zip(xs.tolist(), ys.tolist(), strict=True)), fill=(194, 65, 12), width=3)
+    d.text((left, h - bottom + 8), f"step {int(x0)}", fill=(60, 60, 60))
+    d.text((w - right - 90, h - bottom + 8), f"step {int(x1)}", fill=(60, 60, 60))
+    d.text((left - 60, top - 5), f"{10**y1:.3g}", fill=(60, 60, 60))
+    d.text((left - 60, h - bottom - 10), f"{10**y0:.3g}", fill=(60, 60, 60))
+    d.text((left + 10, 8), "training loss (log scale) against step", fill=(30, 30, 30))
+    img.save(path)
+    return path
 
 
 def _summary(
@@ -455,6 +582,28 @@ def _summary(
     }
 
 
+def _verdict(ks_zip: int, psnr: float, baselines: list[dict]) -> str:
+    """One honest sentence: the kernel set against the baseline nearest in bytes, and any
+    baseline no larger that scores higher."""
+    sized = [b for b in baselines if b["bytes"] > 3]  # not the 3-byte mean colour
+    near = min(sized, key=lambda b: abs(np.log(b["bytes"] / max(ks_zip, 1))))
+    diff = psnr - near["psnr_db"]
+    text = (
+        f"The kernel set takes {ks_zip:,} B zipped and scores {psnr:.2f} dB; nearest in size, "
+        f"{near['method']} ({near['bytes']:,} B) scores {near['psnr_db']:.2f} dB, so the kernel "
+        f"set is {abs(diff):.2f} dB {'better' if diff >= 0 else 'worse'}."
+    )
+    beaten_by = [b["method"] for b in sized if b["bytes"] <= ks_zip and b["psnr_db"] > psnr]
+    if beaten_by:
+        text += (
+            f" Baselines no larger that score higher: {', '.join(beaten_by)}. On this mesh and "
+            "these settings the kernel set does not yet pay for its bytes."
+        )
+    else:
+        text += " No baseline of equal or fewer bytes scores higher."
+    return text
+
+
 def _write_report(out: Path, s: dict) -> Path:
     """report.md and report.html side by side; summary.json for machines."""
     (out / "summary.json").write_text(json.dumps(s, indent=2, default=str))
@@ -470,47 +619,63 @@ def _write_report(out: Path, s: dict) -> Path:
         ("surface PSNR", f"{q['surface_psnr_db']} dB over {q['eval_points']:,} points"),
         ("albedo query", f"{q['query_points_per_second']:,} points/s over HTTP (NPY)"),
         ("point vs face query", f"max abs difference {q['point_vs_face_max_abs_diff']}"),
-    ] + [(f"time: {k}", f"{v:.1f} s") for k, v in s["timings_s"].items()]
+    ]
+    bake = s.get("bake") or {}
+    if bake.get("error_rms") is not None:
+        rows.append(("texture RMS error", f"{bake['error_rms']} (sRGB, covered texels, 512²)"))
+    rows += [(f"time: {k}", f"{v:.1f} s") for k, v in s["timings_s"].items()]
     # The comparison EVALUATION.md asks for: bytes against surface PSNR, same samples.
     compare = [("HKTex kernel set (zip)", ks["zip_bytes"], q["surface_psnr_db"])]
     compare += [(b["method"], b["bytes"], b["psnr_db"]) for b in q["baselines"]]
-    images = [
-        (name, caption)
-        for name, caption in (
-            ("render_kernels.png", "heat-kernel texture (service render)"),
-            ("render_uv_texture.png", "original UV texture (same view)"),
-        )
-        if (out / name).is_file()
-    ]
+    verdict = _verdict(ks["zip_bytes"], q["surface_psnr_db"], q["baselines"])
+    renders = [(f, c) for f, c in RENDERS if (out / f).is_file()]
+    layers = [(f, c) for f, c in LAYERS if (out / f).is_file()]
+    curve = (
+        [("loss_curve.png", "loss curve of the fit")] if (out / "loss_curve.png").is_file() else []
+    )
     rows += [("note", n) for n in s.get("notes", [])]
-    md = [
-        "# HKTex demo",
-        "",
-        " | ".join(f"![{c}]({f})" for f, c in images),
-        "",
-        " | ".join(c for _, c in images),
-        "",
-        "| | |",
-        "|---|---|",
-    ]
+    md = ["# HKTex demo", "", verdict, ""]
+    for group in (renders, layers, curve):
+        if group:
+            md += [
+                " | ".join(f"![{c}]({f})" for f, c in group),
+                "",
+                " | ".join(c for _, c in group),
+                "",
+            ]
+    md += ["| | |", "|---|---|"]
     md += [f"| {k} | {v} |" for k, v in rows]
     md += ["", "| method | bytes | surface PSNR (dB) |", "|---|---|---|"]
     md += [f"| {k} | {b:,} | {p} |" for k, b, p in compare]
-    md += ["", "Machine-readable: `summary.json`; the kernel set: `demo.hkt`."]
+    md += ["", "Machine-readable: `summary.json`; the kernel set: `demo.hkt`; a GLB: `demo.glb`."]
     (out / "report.md").write_text("\n".join(md) + "\n")
-    figs = "".join(
-        f'<figure><img src="{f}" width="320"><figcaption>{html.escape(c)}</figcaption></figure>'
-        for f, c in images
-    )
+
+    def figs(group: list[tuple[str, str]]) -> str:
+        return "".join(
+            f'<figure><a href="{f}"><img src="{f}" alt="{html.escape(c)}"></a>'
+            f"<figcaption>{html.escape(c)}</figcaption></figure>"
+            for f, c in group
+        )
+
     table = "".join(f"<tr><th>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>" for k, v in rows)
     table2 = "<tr><th>method</th><th>bytes</th><th>surface PSNR (dB)</th></tr>" + "".join(
-        f"<tr><td>{html.escape(k)}</td><td>{b:,}</td><td>{p}</td></tr>" for k, b, p in compare
+        f"<tr{' class=hk' if i == 0 else ''}><td>{html.escape(k)}</td><td>{b:,}</td><td>{p}</td></tr>"
+        for i, (k, b, p) in enumerate(compare)
     )
     (out / "report.html").write_text(
         "<!doctype html><meta charset=utf-8><title>HKTex demo</title>"
-        "<style>body{font-family:sans-serif;max-width:60em;margin:2em auto}"
-        "figure{display:inline-block;margin:0 1em}th{text-align:left;padding-right:1em}</style>"
-        f"<h1>HKTex demo</h1><div>{figs}</div><table>{table}</table>"
-        f"<h2>Against the baselines</h2><table>{table2}</table>"
+        "<style>body{font-family:system-ui,sans-serif;max-width:1640px;margin:1.5em auto;"
+        "padding:0 1em;color:#1d232b}.row{display:flex;flex-wrap:wrap;gap:16px}"
+        "figure{margin:0;flex:1 1 30%;min-width:320px;max-width:560px}figure img{width:100%;display:block;"
+        "border-radius:6px;background:#eef0f3}figcaption{color:#66707c;text-align:center}"
+        "th{text-align:left;padding-right:1em}td,th{padding:.2em .6em}"
+        ".verdict{font-size:1.1em;background:#fff7ed;border-left:4px solid #c2410c;"
+        "padding:.6em 1em}tr.hk{font-weight:600}</style>"
+        f"<h1>HKTex demo</h1><p class=verdict>{html.escape(verdict)}</p>"
+        f"<h2>Renders, same view</h2><div class=row>{figs(renders)}</div>"
+        f"<h2>Textures on the mesh's UVs</h2><div class=row>{figs(layers)}</div>"
+        f"<h2>Fit</h2><div class=row>{figs(curve)}</div>"
+        f"<h2>Against the baselines (same {q['eval_points']:,} surface samples)</h2>"
+        f"<table>{table2}</table><h2>Numbers</h2><table>{table}</table>"
     )
     return out / "report.html"

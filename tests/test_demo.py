@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hktex_engine.cli import build_parser
@@ -52,6 +53,26 @@ def test_demo_end_to_end_on_tiny_settings(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["job"]["state"] == "succeeded" and summary["kernelset"]["kernels"] > 0
     assert summary["quality"]["surface_psnr_db"] > 5
-    for name in ("report.html", "report.md", "render_kernels.png", "demo.hkt"):
+    names = ("report.html", "report.md", "render_kernels.png", "demo.hkt", "demo.glb")
+    for name in names + ("uv_error.png", "loss_curve.png", "render_error_map.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert (tmp_path / "render_kernels.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_demo_verdict_is_honest_and_loss_curve_draws(tmp_path: Path) -> None:
+    from hktex_server.demo import _loss_curve_png, _verdict
+    from PIL import Image
+
+    baselines = [
+        {"method": "mean colour", "bytes": 3, "psnr_db": 10.0},
+        {"method": "vertex colours L0", "bytes": 1000, "psnr_db": 25.0},
+        {"method": "UV texture 64px", "bytes": 9000, "psnr_db": 30.0},
+    ]
+    worse = _verdict(1200, 20.0, baselines)
+    assert "5.00 dB worse" in worse and "vertex colours L0" in worse and "not yet" in worse
+    better = _verdict(1200, 26.0, baselines)
+    assert "1.00 dB better" in better and "No baseline of equal or fewer bytes" in better
+    assert _loss_curve_png([(1, 0.1)], tmp_path / "one.png") is None
+    curve = _loss_curve_png([(s, 1.0 / s) for s in range(1, 50)], tmp_path / "c.png")
+    img = Image.open(curve)
+    assert img.size == (720, 400) and len(np.unique(np.asarray(img).reshape(-1, 3), axis=0)) > 2
