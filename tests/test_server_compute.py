@@ -202,3 +202,93 @@ def test_time_budget_and_sigterm_during_a_render(tmp_path, ico_obj) -> None:
     assert took < 10, f"hktex serve needed {took:.1f} s to exit during a render"
     thread.join(10)
     assert answers and answers[0] in (503, -1), answers
+
+
+# ---------------------------------------------------------------- views uploads: bombs
+
+
+def _peak_rss(pid: int) -> int:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    raise AssertionError("no VmHWM")
+
+
+def _gray_png(width: int, height: int) -> bytes:
+    """A valid all-black grayscale PNG, compressed row by row (never held raw in memory)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
+
+    z = zlib.compressobj(9)
+    row = b"\x00" * (width + 1)
+    idat = b"".join(z.compress(row) for _ in range(height)) + z.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def test_views_bombs_are_refused_with_bounded_server_memory(tmp_path) -> None:
+    import io
+    import json
+    import zipfile
+
+    serve = Serve(
+        tmp_path / "data",
+        HKTEX_COMPUTE_WORKERS="1",
+        HKTEX_MAX_UPLOAD_BYTES=str(4_000_000),
+        HKTEX_MAX_ARCHIVE_BYTES=str(50_000_000),
+        HKTEX_COMPUTE_MEMORY_BYTES=str(512 * 2**20),
+    )
+    try:
+        c = httpx.Client(base_url=serve.url, timeout=120)
+
+        def post(data: bytes) -> httpx.Response:
+            return c.post("/v1/views", files={"archive": ("v.zip", data, "application/zip")})
+
+        assert post(b"PK\x03\x04 not a zip").status_code == 422  # the compute path is warm
+        baseline = _peak_rss(serve.proc.pid)
+        # 1. an archive bigger than the upload limit: 413 while it streams
+        assert post(os.urandom(5_000_000)).status_code == 413
+        # 2. a zip bomb: 300 MB of zeros in ~300 KB, past max_archive_bytes when inflated
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("views.json", b"{}")
+            with zf.open("a.bin", "w", force_zip64=True) as member:
+                block = b"\0" * 2**20
+                for _ in range(300):
+                    member.write(block)
+        assert len(buf.getvalue()) < 4_000_000
+        r = post(buf.getvalue())
+        assert r.status_code == 413 and "unpacks to more than" in r.json()["detail"], r.text
+        # 3. a pixel bomb: a small PNG that decodes to 144 M pixels (1.7 GB as float RGB);
+        # decoded in a compute worker under a 512 MiB budget: 422, the API process untouched
+        png = _gray_png(12_000, 12_000)
+        manifest = {
+            "format": "hktex-views",
+            "version": 1,
+            "width": 12_000,
+            "height": 12_000,
+            "views": [
+                {
+                    "name": "v0",
+                    "image": "v0.png",
+                    "camera": {"fov": 40, "origin": [0, 0, 3], "target": [0, 0, 0]},
+                }
+            ],
+        }
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+            zf.writestr("views.json", json.dumps(manifest))
+            zf.writestr("v0.png", png)
+        r = post(buf.getvalue())
+        assert r.status_code == 422 and "memory budget" in r.json()["detail"], r.text
+        grown = _peak_rss(serve.proc.pid) - baseline
+        assert grown < 150 * 2**20, f"the API process peaked {grown / 2**20:.0f} MiB higher"
+        assert c.get("/v1/health").status_code == 200
+        c.close()
+    finally:
+        serve.stop()

@@ -105,6 +105,24 @@ class Worker:
             raise RequestError(503, f"render failed: {type(exc).__name__}: {exc}") from None
 
 
+def check_views(root: str) -> bytes:
+    """Read and validate a views dataset (decoding every image), or say why not (422)."""
+    from hktex_engine.fitting.views import load_views
+
+    try:
+        load_views(root)
+    except (HKTexError, ValueError) as exc:
+        raise RequestError(422, f"{type(exc).__name__}: {' '.join(str(exc).split())}") from None
+    except MemoryError:
+        raise
+    except Exception as exc:  # an image decoder failing on hostile bytes is still bad input
+        detail = " ".join(str(exc).split())[:500]
+        raise RequestError(
+            422, f"unreadable views dataset: {type(exc).__name__}: {detail}"
+        ) from None
+    return b"ok"
+
+
 def _chunked(fn, n: int, chunk: int, *arrays) -> np.ndarray:
     out = np.empty((n, 3), dtype=np.float32)
     for start in range(0, n, chunk):
@@ -161,6 +179,8 @@ def handle(worker: Worker, kind: str, payload: dict[str, Any], memory: int) -> t
             return ("ok", worker.albedo(**payload))
         if kind == "render":
             return ("ok", worker.render(**payload))
+        if kind == "views":
+            return ("ok", check_views(**payload))
         if kind == "ping":
             return ("ok", b"pong")
         return ("error", 400, f"unknown compute request {kind!r}")

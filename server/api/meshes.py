@@ -469,16 +469,24 @@ async def upload_views(
         if existing is not None:
             response.status_code = 200
             return views_record(existing)
-        row = await run_in_threadpool(_store_views, svc, owner, content_key, archive)
+        dest, root, files, size = await run_in_threadpool(_extract_views, svc, archive)
+        try:
+            # decoding the images (a few KB of PNG can claim gigabytes of pixels) happens in
+            # a compute worker, under its memory and time budget, not in the API process
+            await svc.compute.run(request, owner, "views", {"root": str(root)})
+        except BaseException:
+            svc.store.delete(svc.store.rel(dest))
+            raise
+        row = await run_in_threadpool(
+            _publish_views, svc, owner, content_key, dest, root, files, size
+        )
         return views_record(row)
     finally:
         remove_parts(parts)
 
 
-def _store_views(svc: ServiceState, owner: str, content_key: str, archive: Path) -> ViewsRow:
-    from hktex_engine.errors import HKTexError
-    from hktex_engine.fitting.views import load_views
-
+def _extract_views(svc: ServiceState, archive: Path) -> tuple[Path, Path, int, int]:
+    """Unpack the archive into a temp dir (bounded: ``extract_zip`` counts inflated bytes)."""
     dest = svc.store.temp_dir()
     try:
         files, size = extract_zip(
@@ -486,17 +494,12 @@ def _store_views(svc: ServiceState, owner: str, content_key: str, archive: Path)
         )
     except ArchiveError as exc:
         raise HTTPException(413 if exc.too_big else 422, detail=str(exc)) from None
-    root = _dataset_root(dest)
-    try:
-        load_views(root)
-    except (HKTexError, ValueError) as exc:
-        svc.store.delete(svc.store.rel(dest))
-        raise HTTPException(422, detail=f"{type(exc).__name__}: {_one_line(exc)}") from None
-    except Exception as exc:  # an image decoder failing on hostile bytes is still bad input
-        svc.store.delete(svc.store.rel(dest))
-        raise HTTPException(
-            422, detail=f"unreadable views dataset: {type(exc).__name__}: {_one_line(exc)}"
-        ) from None
+    return dest, _dataset_root(dest), files, size
+
+
+def _publish_views(
+    svc: ServiceState, owner: str, content_key: str, dest: Path, root: Path, files: int, size: int
+) -> ViewsRow:
     rel = svc.store.publish_dir(dest, "views", content_key)
     if root != dest:
         rel = str(Path(rel) / root.relative_to(dest))
