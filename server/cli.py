@@ -33,7 +33,9 @@ def cmd_serve(args: argparse.Namespace) -> dict:
     settings = settings_from(args)
     settings.check_bind()  # ValueError -> one stderr line, exit 2
     app = create_app(settings)
-    print(f"hktex serve: http://{settings.host}:{settings.port}/v1 (data {settings.data_dir})")
+    base = f"http://{settings.host}:{settings.port}"
+    print(f"hktex serve: API {base}/v1, dashboard {base}/, docs {base}/docs")
+    print(f"hktex serve: data in {settings.data_dir}")
     config = uvicorn.Config(
         app,
         host=settings.host,
