@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from hktex_engine.config import KernelConfig
+from hktex_engine.kernels import model as kernels_mod
 from hktex_engine.kernels.model import KernelSet
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
@@ -115,6 +116,19 @@ def test_knn_and_bruteforce_follow_the_rule(spectra, tie_case, backend, dtype):
         _check(*model.albedo(f, b, return_aux=True), tie_case, dtype)
         brute = model.albedo_bruteforce(f, b, return_aux=True, exact_search=True)
         _check(*brute, tie_case, dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_vertex_tables_follow_the_rule(spectra, tie_case, dtype, monkeypatch):
+    """The dense-query path (per-vertex candidate tables, kernels.tables)."""
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "always")
+    field = SpectralField(spectra, device="cpu", dtype=dtype)
+    model = make_model(field, tie_case["kp"], CONFIG)
+    with torch.no_grad():
+        _check(
+            *model.albedo(tie_case["face_ids"], tie_case["bary"], return_aux=True), tie_case, dtype
+        )
+    assert model._vtables is not None
 
 
 def test_training_forward_follows_the_rule(spectra, field64, tie_case):

@@ -30,7 +30,14 @@ from torch import nn
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels.knn import CandidateSearch
-from hktex_engine.kernels.ranking import select_by_rule
+from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
+from hktex_engine.kernels.tables import (
+    VertexTables,
+    build_tables,
+    face_tables,
+    point_terms,
+    star_radius,
+)
 from hktex_engine.spectra.interpolation import RowCache, SpectralField
 
 THETA_RANGE = (0.0, math.pi)
@@ -55,6 +62,13 @@ GRAD_CHUNK_POINTS = 1024
 ROWS_CACHE_BYTES = 256 * 2**20
 #: Extra nearest centres fetched before the exact per-pair cut to ``K_s`` (see ``_exact_cut``).
 KNN_MARGIN = 8
+#: No-grad queries through per-vertex candidate tables (``kernels.tables``): "auto" (whole-
+#: mesh tables when built, else per batch when it has this many points per distinct vertex),
+#: "always" or "never" (the per-point KNN path).
+TABLE_PATH = "auto"
+TABLE_POINTS_PER_VERTEX = 2.0
+#: Largest whole-mesh candidate tables :meth:`HeatKernelModel.prepare_tables` keeps.
+TABLES_MAX_BYTES = 1024 * 2**20
 #: Relative round-off of the index's distances (float32 ``|q|^2 + |c|^2 - 2 q.c``) against
 #: ``|q|^2 + max |c|^2``; generous, it only decides when a row is cut over all centres.
 CUT_ROUNDOFF = 1e-5
@@ -215,6 +229,10 @@ class HeatKernelModel(nn.Module):
         self._cache_key: tuple | None = None
         self._knn_key: tuple | None = None
         self._rows = RowCache(ROWS_CACHE_BYTES)
+        self._vtables: VertexTables | None = None
+        self._vtables_key: tuple | None = None
+        self._vtables_full = False
+        self._radius: torch.Tensor | None = None
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -390,6 +408,84 @@ class HeatKernelModel(nn.Module):
         self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
         self._knn_key = key
 
+    @torch.no_grad()
+    def prepare_tables(self) -> VertexTables | None:
+        """Build the candidate tables of every vertex now (dense query workloads: baking,
+        rendering, large query batches), if they fit :data:`TABLES_MAX_BYTES`; returns them
+        (None when they do not fit: chunks then build their own)."""
+        key = self._version_key([self.bary, self.theta, self.s])
+        if self._vtables is not None and self._vtables_key == key and self._vtables_full:
+            return self._vtables
+        self._ensure_cache()
+        self._ensure_knn()
+        all_v = torch.arange(self.field.n_vertices, device=self.field.device)
+        est = self.field.n_vertices * 3 * min(self.config.k_search, len(self)) * 24
+        if est > TABLES_MAX_BYTES:
+            return None
+        self._vtables = self._build_tables(all_v)
+        self._vtables_key, self._vtables_full = key, True
+        return self._vtables
+
+    def _build_tables(self, verts: torch.Tensor) -> VertexTables:
+        if self._radius is None:
+            self._radius = star_radius(self.field)
+        k_s = min(self.config.k_search, len(self))
+        return build_tables(
+            self.field, verts, self._centre_emb, self._terms, k_s, self._radius, self._knn
+        )
+
+    @torch.no_grad()
+    def _tables_for(self, face_ids: torch.Tensor) -> VertexTables | None:
+        """Vertex tables covering the faces of a no-grad batch, or None for the per-point path.
+
+        Whole-mesh tables (:meth:`prepare_tables`) are reused while the kernels do not change;
+        otherwise a batch builds tables for its own vertices when it has at least
+        :data:`TABLE_POINTS_PER_VERTEX` points per distinct vertex (dense queries), else the
+        per-point path runs (``TABLE_PATH`` forces either).
+        """
+        if TABLE_PATH == "never" or face_ids.numel() == 0:
+            return None
+        self._ensure_cache()
+        key = self._version_key([self.bary, self.theta, self.s])
+        verts = torch.unique(self.field.faces[face_ids])
+        if self._vtables is not None and self._vtables_key == key:
+            if self._vtables.covers(verts):
+                return self._vtables
+        if TABLE_PATH != "always" and face_ids.shape[0] < TABLE_POINTS_PER_VERTEX * verts.numel():
+            return None
+        tables = self._build_tables(verts)
+        if not (self._vtables_full and self._vtables_key == key):
+            self._vtables, self._vtables_key, self._vtables_full = tables, key, False
+        return tables
+
+    def _blend_tables(self, tables, face_ids, bary, return_aux):
+        """No-grad albedo from vertex tables (``kernels.tables``): exact ``K_s`` cut and
+        ``K_c`` choice by the tie rule on each point's face candidates."""
+        n_k = len(self)
+        faces = torch.unique(face_ids)
+        ft = face_tables(self.field, tables, faces, min(self.config.k_search, n_k))
+        kid, h, d2 = point_terms(ft, face_ids, bary)
+        valid = kid < n_k
+        safe = torch.where(valid, kid, torch.zeros_like(kid))
+        _, norm, _, _, _ = self._terms
+        w = torch.exp(-d2 / (2.0 * self.config.sigma_b**2)).to(h.dtype)
+        r = h * w / norm[safe]
+        rho = soft_step(r, self.threshold[safe], self.sharpness[safe])
+        # padding gets distinct ids above every kernel's (the rule needs unique ids per row)
+        pad_ids = n_k + torch.arange(kid.shape[1], device=kid.device).expand_as(kid)
+        tie_id = torch.where(valid, kid, pad_ids)
+        k_s = min(self.config.k_search, n_k)
+        pos = nearest_by_rule(d2, tie_id, k_s)
+        rho, d2, kid = rho.gather(1, pos), d2.gather(1, pos), kid.gather(1, pos)
+        top = select_by_rule(rho, d2, kid, min(self.config.k_blend, k_s))
+        rho_top, kid = rho.gather(1, top), kid.gather(1, top)
+        weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
+        denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
+        out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
+        if return_aux:
+            return out, {"indices": kid, "rho": rho_top}
+        return out
+
     def _spectral_terms(
         self, idx: torch.Tensor, rows: RowCache | None = None
     ) -> tuple[torch.Tensor, ...]:
@@ -419,6 +515,10 @@ class HeatKernelModel(nn.Module):
         bary = _query_float(bary, self.field.device, self.field.dtype)
         self._ensure_knn()
         k_s = min(self.config.k_search, len(self))
+        if not self._grad_needed() and not (torch.is_grad_enabled() and bary.requires_grad):
+            tables = self._tables_for(face_ids)
+            if tables is not None:
+                return self._blend_tables(tables, face_ids, bary, return_aux)
         emb_y = self.field.embedding_at(face_ids, bary)
         cand = self._knn.search(emb_y, k_s + KNN_MARGIN)
         cand, d2 = _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)

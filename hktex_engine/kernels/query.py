@@ -19,6 +19,8 @@ from hktex_engine.spectra.interpolation import SpectralField
 
 #: Default bytes the tensors of one chunk may take (see :meth:`AlbedoQuery.bytes_per_point`).
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
+#: Calls with at least this many points per mesh vertex build whole-mesh candidate tables.
+TABLES_POINTS_PER_VERTEX = 1.0
 #: Barycentric rows may miss the simplex by this much (round-off in a caller's own tools).
 BARY_TOL = 1e-4
 
@@ -81,6 +83,10 @@ class AlbedoQuery:
         face_ids, bary = face_ids[order], bary[order]
         out = np.empty((face_ids.shape[0], 3), dtype=np.float32)
         with torch.no_grad():
+            if face_ids.shape[0] >= TABLES_POINTS_PER_VERTEX * self.field.n_vertices:
+                # dense workload: per-vertex candidate tables for the whole mesh, built once
+                # and kept while this query object lives (kernels.tables)
+                self.model.prepare_tables()
             for start in range(0, face_ids.shape[0], self.chunk_points):
                 sl = slice(start, start + self.chunk_points)
                 f = torch.as_tensor(face_ids[sl], device=self.device)

@@ -1,0 +1,320 @@
+"""Per-vertex candidate tables: dense queries without a per-point search (issue 10, item 1).
+
+A query point ``y`` in face ``f`` has its embedding ``e(y) = sum_v b_v e(v)`` inside the
+triangle of its three vertex embeddings, and its heat response is linear in the barycentrics,
+``h_j(y) = sum_v b_v H_j(v)``. So the per-point work can be moved to the vertices:
+
+1. **Candidate lists that provably contain every point's ``K_s`` nearest centres.** For a
+   vertex ``v`` let ``R_v`` be the longest embedding edge at ``v`` (every point of a face at
+   ``v`` lies within ``R_v`` of ``e(v)``: the face's embedded triangle is in the ball) and
+   ``D_v`` the distance from ``e(v)`` to its ``K_s``-th nearest centre. For ``y`` in a face
+   at ``v`` the ``K_s``-th nearest distance is at most ``D_v + R_v`` (those ``K_s`` centres
+   are that close to ``y``), and any centre that near ``y`` is within ``D_v + 2 R_v`` of
+   ``e(v)`` (triangle inequality). The list of ``v`` holds every centre within that radius
+   (plus the index's round-off), sorted by kernel index; a face's list is the intersection of
+   its three vertices' lists (``searchsorted``), still a superset of each of its points'
+   ``K_s`` nearest, ties included. The exact cut by the tie rule then runs per point on it.
+2. **Per (vertex, candidate) values, computed once**: ``H_j(v)`` (the kernel's response at the
+   vertex: one dense ``bmm`` of the candidates' spectral coefficients against the vertex's
+   (G, K) eigenvector block, then the kernel's four bilinear nodes) and the squared distance
+   ``D_j(v) = |e(v) - e(c_j)|^2`` (float64, directly).
+3. **Per point**, for each candidate of its face: ``h = sum_v b_v H_j(v)`` and, exactly,
+   ``|e(y) - e(c_j)|^2 = sum_v b_v D_j(v) - sum_{u<v} b_u b_v |e(u) - e(v)|^2`` (the identity
+   ``|sum_v b_v x_v|^2 = sum_v b_v |x_v|^2 - sum_{u<v} b_u b_v |x_u - x_v|^2`` for
+   ``sum_v b_v = 1``, with ``x_v = e(v) - e(c_j)``; evaluated in float64, so no cancellation
+   matters at these scales). Three multiply-adds each instead of ``G K``.
+
+Everything is torch on the field's device; no Python loop over points, kernels or vertices
+(only over bounded chunks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+#: Bytes of one chunk of the (vertices x centres) distance matrix.
+DISTANCE_CHUNK_BYTES = 64 * 2**20
+#: Vertices per patch whose responses are computed by shared dense products.
+PATCH = 32
+#: Bytes of one chunk of gathered candidate coefficients when computing ``H``.
+H_CHUNK_BYTES = 32 * 2**20
+
+
+@dataclass
+class VertexTables:
+    """Candidate lists and per-(vertex, candidate) values for a set of vertices.
+
+    ``rows`` (n,) maps a mesh vertex to its row (-1: not in the table); ``kid`` (V, L) the
+    candidates, ascending, padded with ``n_kernels``; ``h`` (V, L) ``H_j(v)`` and ``d2``
+    (V, L) float64 ``D_j(v)``.
+    """
+
+    rows: torch.Tensor
+    kid: torch.Tensor
+    h: torch.Tensor
+    d2: torch.Tensor
+    n_kernels: int
+
+    @property
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.rows, self.kid, self.h, self.d2))
+
+    def covers(self, verts: torch.Tensor) -> bool:
+        return bool((self.rows[verts] >= 0).all())
+
+
+def star_radius(field) -> torch.Tensor:
+    """``R_v`` (n,) float64: the longest embedding edge at each vertex."""
+    emb = field.embedding.to(torch.float64)
+    f = field.faces
+    edges = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    length = torch.linalg.norm(emb[edges[:, 0]] - emb[edges[:, 1]], dim=1)
+    out = torch.zeros(emb.shape[0], dtype=torch.float64, device=emb.device)
+    out.scatter_reduce_(0, edges[:, 0], length, reduce="amax")
+    out.scatter_reduce_(0, edges[:, 1], length, reduce="amax")
+    return out
+
+
+def build_tables(
+    field,
+    verts: torch.Tensor,
+    centres: torch.Tensor,
+    terms: tuple[torch.Tensor, ...],
+    k_s: int,
+    radius: torch.Tensor,
+    search=None,
+) -> VertexTables:
+    """Tables for the unique vertices ``verts`` (sorted), from the model's per-kernel terms.
+
+    ``D_v`` needs only an upper bound: the largest exact distance to any ``K_s`` centres, so
+    the ``K_s`` found by ``search`` (a :class:`~hktex_engine.kernels.knn.CandidateSearch`,
+    approximate ranking is fine) serve; without one, a ``topk`` over the distance rows.
+    Distances are float64 ``|a|^2 + |c|^2 - 2 a.c`` (one GEMM per chunk; its round-off,
+    ~1e-16 of ``|a|^2 + |c|^2``, is far below what the lists' slack covers).
+    """
+    n_k = centres.shape[0]
+    dev = centres.device
+    emb = field.embedding.to(torch.float64)
+    c64 = centres.to(torch.float64)
+    c_sq = (c64 * c64).sum(dim=1)
+    slack = 1e-12 * (float(c_sq.max()) + float((emb * emb).sum(dim=1).max()))
+    per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * 8))
+    if search is not None:
+        near = search.search(field.embedding[verts].to(centres.dtype), k_s)  # (V, k_s)
+        reach_v = torch.empty(verts.shape[0], dtype=torch.float64, device=dev)
+        step = max(1, DISTANCE_CHUNK_BYTES // max(1, k_s * emb.shape[1] * 8))
+        for start in range(0, verts.shape[0], step):
+            sl = slice(start, start + step)
+            diff = emb[verts[sl]][:, None, :] - c64[near[sl]]
+            reach_v[sl] = torch.sqrt((diff * diff).sum(dim=2).max(dim=1).values)
+    r_idx, c_idx, vals = [], [], []
+    for start in range(0, verts.shape[0], per_row):
+        v = verts[start : start + per_row]
+        e = emb[v]
+        d2 = torch.addmm(c_sq[None, :], e, c64.T, beta=1.0, alpha=-2.0)
+        d2 += (e * e).sum(dim=1)[:, None]
+        if search is not None:
+            kth = reach_v[start : start + per_row]
+        else:
+            kth = torch.sqrt(torch.topk(d2, k_s, dim=1, largest=False).values[:, -1].clamp(min=0))
+        reach = kth + 2.0 * radius[v]
+        bound = reach * reach * (1 + 1e-9) + slack
+        rr, cc = torch.nonzero(d2 <= bound[:, None], as_tuple=True)
+        r_idx.append(rr + start)
+        c_idx.append(cc)
+    rr, cc = torch.cat(r_idx), torch.cat(c_idx)  # row-major: kernel ids ascending per row
+    # The kept pairs' distances directly, elementwise (a GEMM's rounding can differ between
+    # equal columns, which would split clones that the tie rule must see as equal).
+    step = max(1, DISTANCE_CHUNK_BYTES // max(1, emb.shape[1] * 8))
+    for start in range(0, rr.shape[0], step):
+        diff = emb[verts[rr[start : start + step]]] - c64[cc[start : start + step]]
+        vals.append((diff * diff).sum(dim=1))
+    counts = torch.bincount(rr, minlength=verts.shape[0])
+    width = int(counts.max()) if counts.numel() else 0
+    offsets = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(rr.shape[0], device=dev) - offsets[rr]
+    kid = torch.full((verts.shape[0], width), n_k, dtype=torch.long, device=dev)
+    kid[rr, slot] = cc
+    d2 = torch.full(kid.shape, float("inf"), dtype=torch.float64, device=dev)
+    d2[rr, slot] = torch.cat(vals)
+    h = _vertex_responses(field, verts, kid, terms)
+    rows = torch.full((field.n_vertices,), -1, dtype=torch.long, device=dev)
+    rows[verts] = torch.arange(verts.shape[0], device=dev)
+    return VertexTables(rows=rows, kid=kid, h=h, d2=d2, n_kernels=n_k)
+
+
+def _vertex_responses(field, verts, kid, terms) -> torch.Tensor:
+    """``H_j(v)`` (V, L) for the candidates ``kid`` (V, L) of each vertex.
+
+    Each (vertex, kernel) pair needs four K-long dot products (the kernel's bilinear nodes)
+    out of the vertex's (G, K) block. To run them as dense products, vertices are grouped
+    into spatial patches of :data:`PATCH` (Morton order of their positions); per patch and
+    grid node ``g``, the patch's vertex rows at ``g`` (PATCH, K) multiply the coefficients of
+    the patch's candidates that use node ``g`` (one batched matmul for all (patch, node)
+    blocks of a chunk). Against one (L, K) x (K, G) product per vertex this does about
+    ``4 |union| / L`` instead of ``G`` products per pair.
+    """
+    coef, _, nodes, weights, _ = terms
+    v_n, width = kid.shape
+    n_k, k = coef.shape
+    g_n = field.n_nodes
+    dev = coef.device
+    out = torch.zeros((v_n, width), dtype=coef.dtype, device=dev)
+    if width == 0 or v_n == 0:
+        return out
+    order = _morton_order(field.vertices[verts])
+    n_p = (v_n + PATCH - 1) // PATCH
+    patch_of = torch.empty(v_n, dtype=torch.long, device=dev)
+    patch_of[order] = torch.arange(v_n, device=dev) // PATCH
+    local_of = torch.empty(v_n, dtype=torch.long, device=dev)
+    local_of[order] = torch.arange(v_n, device=dev) % PATCH
+    valid = kid < n_k
+    # union of the lists of each patch: sorted unique (patch, kernel) keys
+    keys = (patch_of[:, None] * n_k + kid)[valid]
+    ukeys, inverse = torch.unique(keys, return_inverse=True)
+    up, uj = ukeys // n_k, ukeys % n_k  # union entries (U,)
+    # (patch, node) groups: 4 corners per union entry
+    corner_g = nodes[uj]  # (U, 4)
+    gkey = (up[:, None] * g_n + corner_g).reshape(-1)  # (U * 4,)
+    gsorted, gorder = torch.sort(gkey, stable=True)
+    counts = torch.bincount(gsorted, minlength=n_p * g_n)
+    starts = torch.cumsum(counts, 0) - counts
+    slot_sorted = torch.arange(gsorted.shape[0], device=dev) - starts[gsorted]
+    slot = torch.empty_like(slot_sorted)
+    slot[gorder] = slot_sorted
+    m_max = int(counts.max())
+    # vertex rows of each patch: (n_p, PATCH) vertex ids, padded by repeating the first
+    members = torch.full((n_p * PATCH,), -1, dtype=torch.long, device=dev)
+    members[patch_of * PATCH + local_of] = verts
+    members = members.view(n_p, PATCH)
+    members = torch.where(members >= 0, members, members[:, :1])
+    # values per union entry and patch vertex: (U, PATCH)
+    values = torch.zeros((up.shape[0], PATCH), dtype=coef.dtype, device=dev)
+    flat_slot = gsorted * m_max + slot_sorted  # row of each sorted (entry, corner) in a block
+    ent_sorted = gorder // 4
+    coef_sorted = uj[ent_sorted]
+    w_sorted = weights[coef_sorted, gorder % 4]
+    bounds = torch.searchsorted(gsorted, torch.arange(0, n_p + 1, device=dev) * g_n).tolist()
+    per = max(1, H_CHUNK_BYTES // max(1, g_n * m_max * k * coef.element_size()))
+    for p0 in range(0, n_p, per):
+        p1 = min(n_p, p0 + per)
+        a, b = bounds[p0], bounds[p1]
+        if a == b:
+            continue
+        rows_in = flat_slot[a:b] - p0 * g_n * m_max
+        # unused slots stay uninitialised: each product column reads only its own slot
+        block = torch.empty(((p1 - p0) * g_n * m_max, k), dtype=coef.dtype, device=dev)
+        block.index_copy_(0, rows_in, coef.index_select(0, coef_sorted[a:b]))
+        rows = field.evecs.index_select(0, members[p0:p1].reshape(-1)).to(coef.dtype)
+        rows = rows.view(p1 - p0, PATCH, g_n, k).transpose(1, 2).reshape(-1, PATCH, k)
+        block = block.view(-1, m_max, k)
+        dots = torch.bmm(block, rows.transpose(1, 2))  # ((p, g), m_max, PATCH)
+        picked = dots.view(-1, PATCH).index_select(0, rows_in)  # (n_sel, PATCH)
+        values.index_add_(0, ent_sorted[a:b], picked * w_sorted[a:b, None])
+    # back to the vertex tables: entry of (patch(v), kid) for each valid slot
+    flat = torch.zeros(valid.shape, dtype=torch.long, device=dev)
+    flat[valid] = inverse
+    out = values.view(-1)[flat * PATCH + local_of[:, None]]
+    return torch.where(valid, out, torch.zeros_like(out))
+
+
+def _morton_order(points: torch.Tensor) -> torch.Tensor:
+    """An ordering of 3-D points along a Z-order curve (10 bits per axis)."""
+    lo = points.min(dim=0).values
+    span = torch.clamp(points.max(dim=0).values - lo, min=1e-12)
+    q = ((points - lo) / span * 1023).to(torch.long).clamp(0, 1023)
+    code = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return torch.argsort(code)
+
+
+@dataclass
+class FaceTables:
+    """The candidates of faces: intersection of their vertices' lists, values per corner."""
+
+    rows: torch.Tensor  # (m,) face -> row, -1 absent
+    kid: torch.Tensor  # (F, L), padded with n_kernels
+    h: torch.Tensor  # (F, L, 3)
+    d2: torch.Tensor  # (F, L, 3) float64, +inf where invalid
+    edge2: torch.Tensor  # (F, 3) float64: |e0 - e1|^2, |e0 - e2|^2, |e1 - e2|^2
+
+
+def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> FaceTables:
+    """Tables for the unique faces ``faces``: candidates in all three vertex lists and within
+    the face's own bound (see the comment below)."""
+    tri = field.faces[faces]  # (F, 3)
+    rows = tables.rows[tri]  # (F, 3)
+    n_k = tables.n_kernels
+    base = tables.kid[rows[:, 0]]  # (F, L)
+    width = base.shape[1]
+    hs, ds = [tables.h[rows[:, 0]]], [tables.d2[rows[:, 0]]]
+    valid = base < n_k
+    for corner in (1, 2):
+        other = tables.kid[rows[:, corner]]
+        pos = torch.searchsorted(other, base).clamp(max=max(0, width - 1))
+        valid &= other.gather(1, pos) == base
+        hs.append(tables.h[rows[:, corner]].gather(1, pos))
+        ds.append(tables.d2[rows[:, corner]].gather(1, pos))
+    h = torch.stack(hs, dim=2)
+    d2 = torch.stack(ds, dim=2)
+    emb = field.embedding.to(torch.float64)[tri]  # (F, 3, D)
+    edge2 = torch.stack(
+        [
+            ((emb[:, 0] - emb[:, 1]) ** 2).sum(dim=1),
+            ((emb[:, 0] - emb[:, 2]) ** 2).sum(dim=1),
+            ((emb[:, 1] - emb[:, 2]) ** 2).sum(dim=1),
+        ],
+        dim=1,
+    )
+    # Tighter per face: its points lie within R_f of the centroid c_f, so their K_s nearest
+    # are within D_f + 2 R_f of c_f, D_f = the K_s-th nearest distance from c_f (exact here:
+    # c_f's K_s nearest are in all three vertex lists). |c_f - c_j|^2 by the same identity.
+    centroid = emb.mean(dim=1)
+    r_f = torch.linalg.norm(emb - centroid[:, None, :], dim=2).max(dim=1).values
+    dc2 = d2.sum(dim=2) / 3.0 - edge2.sum(dim=1, keepdim=True) / 9.0
+    dc2 = torch.where(valid, dc2, torch.full_like(dc2, float("inf")))
+    k = min(k_s, width)
+    kth = torch.topk(dc2, k, dim=1, largest=False).values[:, -1].clamp(min=0.0)
+    reach = torch.sqrt(kth) + 2.0 * r_f
+    slack = 1e-12 * (1.0 + float((emb * emb).sum(dim=2).max()))
+    valid &= dc2 <= (reach * reach * (1 + 1e-9) + slack)[:, None]
+    # compact each row to its kept entries, kernel order kept (row-major nonzero)
+    rr, cc = torch.nonzero(valid, as_tuple=True)
+    counts = torch.bincount(rr, minlength=faces.shape[0])
+    width = int(counts.max()) if counts.numel() else 0
+    slot = torch.arange(rr.shape[0], device=faces.device) - (torch.cumsum(counts, 0) - counts)[rr]
+    kid = torch.full((faces.shape[0], width), n_k, dtype=torch.long, device=faces.device)
+    kid[rr, slot] = base[rr, cc]
+    h_out = torch.zeros((faces.shape[0], width, 3), dtype=h.dtype, device=h.device)
+    h_out[rr, slot] = h[rr, cc]
+    d2_out = torch.full((faces.shape[0], width, 3), float("inf"), dtype=d2.dtype, device=d2.device)
+    d2_out[rr, slot] = d2[rr, cc]
+    h, d2 = h_out, d2_out
+    face_rows = torch.full((field.n_faces,), -1, dtype=torch.long, device=faces.device)
+    face_rows[faces] = torch.arange(faces.shape[0], device=faces.device)
+    return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2)
+
+
+def point_terms(
+    ft: FaceTables, face_ids: torch.Tensor, bary: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(kid, h, d2)`` (P, L) for points: candidates of the point's face (padded with
+    ``n_kernels``; ``d2 = +inf`` there), their responses and exact squared distances."""
+    row = ft.rows[face_ids]
+    b64 = bary.to(torch.float64)
+    kid = ft.kid[row]
+    # elementwise (not a matmul), so equal table rows (clones) give equal bits
+    hv, bh = ft.h[row], bary.to(ft.h.dtype)
+    h = hv[:, :, 0] * bh[:, 0:1] + hv[:, :, 1] * bh[:, 1:2] + hv[:, :, 2] * bh[:, 2:3]
+    dv = ft.d2[row].nan_to_num(posinf=0.0)
+    d2 = dv[:, :, 0] * b64[:, 0:1] + dv[:, :, 1] * b64[:, 1:2] + dv[:, :, 2] * b64[:, 2:3]
+    e2 = ft.edge2[row]
+    quad = b64[:, 0] * b64[:, 1] * e2[:, 0] + b64[:, 0] * b64[:, 2] * e2[:, 1]
+    quad = quad + b64[:, 1] * b64[:, 2] * e2[:, 2]
+    d2 = torch.clamp(d2 - quad[:, None], min=0.0)
+    d2 = torch.where(torch.isinf(ft.d2[row, :, 0]), torch.full_like(d2, float("inf")), d2)
+    return kid, h, d2

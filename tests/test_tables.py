@@ -1,0 +1,104 @@
+"""Per-vertex candidate tables (kernels.tables) against the per-point KNN path and brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.kernels import model as kernels_mod
+from hktex_engine.kernels import tables as tables_mod
+from hktex_engine.kernels.model import _exhaustive_cut
+from hktex_engine.spectra.interpolation import SpectralField
+from tests.kernels_support import tiny_spectra
+from tests.test_kernels import make_model, make_params
+
+CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=12, k_blend=4)
+
+
+@pytest.fixture(scope="module")
+def spectra3():
+    return tiny_spectra(3)  # 642 vertices: lists are a small part of 300 kernels
+
+
+@pytest.fixture(scope="module")
+def dense_points(spectra3):
+    rng = np.random.default_rng(11)
+    n = 3000
+    return rng.integers(0, spectra3.faces.shape[0], n), rng.dirichlet(np.ones(3), n)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_tables_equal_the_per_point_path(spectra3, dense_points, monkeypatch, dtype):
+    field = SpectralField(spectra3, device="cpu", dtype=dtype)
+    model = make_model(field, make_params(spectra3, 300, seed=12), CONFIG)
+    f, b = dense_points
+    results = {}
+    for path in ("never", "always"):
+        monkeypatch.setattr(kernels_mod, "TABLE_PATH", path)
+        monkeypatch.setattr(tables_mod, "PATCH", 5)  # several patches, a ragged last one
+        with torch.no_grad():
+            results[path] = model.albedo(f, b, return_aux=True)
+    assert model._vtables is not None and model._vtables.kid.shape[1] < 300
+    (a, aux_a), (t, aux_t) = results["never"], results["always"]
+    if dtype == torch.float64:
+        np.testing.assert_allclose(t.numpy(), a.numpy(), atol=1e-12)
+        assert torch.equal(aux_t["indices"], aux_a["indices"])
+    else:
+        diff = (t - a).abs().max(dim=1).values
+        assert diff.max() < 1e-4
+        assert (aux_t["indices"] == aux_a["indices"]).all(dim=1).float().mean() > 0.99
+
+
+def test_face_lists_contain_every_points_nearest(spectra3, dense_points):
+    """The provable superset: each point's exact K_s nearest centres (tie rule, over all
+    centres) are among its face's candidates."""
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float64)
+    model = make_model(field, make_params(spectra3, 300, seed=13), CONFIG)
+    f, b = (torch.as_tensor(x) for x in dense_points)
+    with torch.no_grad():
+        tables = model.prepare_tables()
+        ft = tables_mod.face_tables(field, tables, torch.unique(f), CONFIG.k_search)
+        kid, h, d2 = tables_mod.point_terms(ft, f, b)
+        nearest, d2_near = _exhaustive_cut(field.embedding_at(f, b), model._centre_emb, 12)
+    found = (kid[:, :, None] == nearest[:, None, :]).any(dim=1)
+    assert found.all()
+    # and the identity-based distances equal the direct ones
+    pos = (kid[:, :, None] == nearest[:, None, :]).float().argmax(dim=1)
+    np.testing.assert_allclose(d2.gather(1, pos).numpy(), d2_near.numpy(), atol=1e-12)
+    assert kid.shape[1] < 150  # well below all 300 kernels
+
+
+def test_vertex_responses_equal_a_direct_computation(spectra3):
+    """H_j(v) from the patch products against coef_j . phi^j(v) computed per pair."""
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float64)
+    model = make_model(field, make_params(spectra3, 80, seed=14), CONFIG)
+    with torch.no_grad():
+        tables = model.prepare_tables()
+        coef, _, nodes, weights, _ = model._terms
+        v = torch.arange(field.n_vertices)[:, None].expand_as(tables.kid)
+        valid = tables.kid < 80
+        j = torch.where(valid, tables.kid, 0)
+        rows = field.evecs[v[..., None], nodes[j]]  # (V, L, 4, K)
+        direct = ((rows * weights[j][..., None]).sum(dim=2) * coef[j]).sum(dim=-1)
+    np.testing.assert_allclose(tables.h[valid].numpy(), direct[valid].numpy(), atol=1e-12)
+
+
+def test_tables_follow_centre_moves(spectra3, dense_points):
+    """Tables are rebuilt when centres (or attributes) change, never read stale."""
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float64)
+    kp = make_params(spectra3, 200, seed=15)
+    model = make_model(field, kp, CONFIG)
+    f, b = dense_points
+    with torch.no_grad():
+        model.prepare_tables()
+        model.albedo(f, b)
+        moved = (model.face_ids + 7) % spectra3.faces.shape[0]
+        model.set_centres(moved, model.bary.detach())
+        model.theta.add_(0.3).clamp_(0, np.pi)
+        got = model.albedo(f, b)
+        kp2 = dict(kp, face_ids=moved.numpy(), theta=model.theta.numpy().copy())
+        fresh = make_model(field, kp2, CONFIG)
+        ref = fresh.albedo_bruteforce(f, b, exact_search=True)
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-12)
