@@ -11,6 +11,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError, QueryError
+from hktex_engine.kernels import tables as tables_mod
 from hktex_engine.kernels.model import HeatKernelModel, KernelSet
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.spectra.interpolation import SpectralField
@@ -131,14 +132,22 @@ def test_chunked_memory_is_bounded(spectra, kernelset):
     chunked = AlbedoQuery(spectra, kernelset, device="cpu", chunk_points=16)
     whole = AlbedoQuery(spectra, kernelset, device="cpu", chunk_points=10**6)
     sizes = []
-    for p in (64, 512):
+    # 64 points: the per-point path; then more points than vertices: whole-mesh candidate
+    # tables, built by the first such call (their size depends on the mesh, not the points)
+    for p in (64, 600, 512, 4096):
         face_ids, bary = random_points(spectra, p, seed=p)
         with _LargestTensor() as mode:
             got = chunked.colors(face_ids, bary)
         sizes.append(mode.largest)
         np.testing.assert_allclose(got, whole.colors(face_ids, bary), atol=1e-6)
-    assert sizes[0] == sizes[1], "peak tensor size must not grow with the number of points"
-    assert sizes[1] <= 16 * chunked.bytes_per_point()
+    assert sizes[2] == sizes[3], "peak tensor size must not grow with the number of points"
+    for size in (sizes[0], sizes[2]):
+        assert size <= 16 * chunked.bytes_per_point()
+    tables = chunked.model._vtables
+    assert tables is not None and chunked.model._vtables_full
+    # the build: mesh-sized tables and intermediates capped by the tables' chunk sizes
+    cap = max(4 * tables.nbytes, tables_mod.DISTANCE_CHUNK_BYTES, tables_mod.H_CHUNK_BYTES)
+    assert sizes[1] <= cap
     auto = AlbedoQuery(spectra, kernelset, device="cpu", memory_budget=1 << 20)
     assert auto.chunk_points == (1 << 20) // auto.bytes_per_point()
 
