@@ -76,3 +76,21 @@ def test_demo_verdict_is_honest_and_loss_curve_draws(tmp_path: Path) -> None:
     curve = _loss_curve_png([(s, 1.0 / s) for s in range(1, 50)], tmp_path / "c.png")
     img = Image.open(curve)
     assert img.size == (720, 400) and len(np.unique(np.asarray(img).reshape(-1, 3), axis=0)) > 2
+
+
+def test_demo_serve_prints_the_dashboard_and_stops_on_sigterm(tmp_path: Path, capsys) -> None:
+    import os
+    import signal
+    import threading
+    from types import SimpleNamespace
+
+    from hktex_server.demo import _serve_until_interrupted
+
+    before = signal.getsignal(signal.SIGTERM)
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGTERM))
+    timer.start()
+    _serve_until_interrupted(SimpleNamespace(quiet=True), "http://127.0.0.1:1234", tmp_path)
+    timer.join()
+    out = capsys.readouterr().out
+    assert "dashboard at http://127.0.0.1:1234/" in out
+    assert signal.getsignal(signal.SIGTERM) == before, "the previous handler must be restored"
