@@ -435,6 +435,8 @@ class RenderScene:
             raise ValueError("face indices out of range")
         self.vertices, self.faces = vertices, faces
         self.uv_mode = texture is not None
+        #: the last plain render's point cache (``asked`` / ``evaluated`` point counts)
+        self.last_cache: _PointCache | None = None
         if self.uv_mode:
             if corner_uvs is None:
                 raise ValueError("a UV-textured scene needs corner_uvs")
@@ -548,7 +550,7 @@ class RenderScene:
         plugin = self.texture_plugin
         inner = plugin.albedo_fn if plugin is not None else None
         if inner is not None:
-            plugin.albedo_fn = _without_grad(inner)
+            plugin.albedo_fn = self.last_cache = _PointCache(_without_grad(inner))
         try:
             with dr.suspend_grad():
                 img = mi.render(self.scene, sensor=sensor, spp=spp or self.settings.spp, seed=seed)
@@ -630,6 +632,73 @@ def _without_grad(fn: AlbedoFn) -> AlbedoFn:
     return call
 
 
+def _point_keys(face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+    """Exact identity of surface points, (P, 3) int64: the face and the bit patterns of the
+    two barycentrics Mitsuba handed over (the third is derived from them)."""
+    b = bary.detach()[:, 1:].contiguous()
+    bits = b.view(torch.int32) if b.dtype == torch.float32 else b.view(torch.int64)
+    return torch.cat([face_ids.long()[:, None], bits.long()], dim=1)
+
+
+class _PointCache:
+    """Answers each distinct surface point once per pass (exact reuse, no approximation).
+
+    Mitsuba asks the texture several times about the same hits within one render (measured
+    on a convex sphere, 64 x 64 at 4 spp: 15,337 points asked, 10,340 distinct), and the
+    albedo model is what a render waits on. Points are identified bit for bit
+    (:func:`_point_keys`), so a reused value is the very value the model gave for the same
+    input. With ``tape`` (the adjoint pass of a differentiable render) the fresh values are
+    recorded as (model output, detached leaf) pairs and every answer is gathered from the
+    leaves, so gradients from every repeat of a point accumulate into its one leaf. Memory:
+    one key row and one colour per distinct point of the pass; dropped with the pass.
+    """
+
+    def __init__(self, fn: AlbedoFn, tape: list | None = None) -> None:
+        self.fn = fn
+        self.tape = tape
+        self.keys: torch.Tensor | None = None  # (D, 3) distinct points answered so far
+        self.table: torch.Tensor | None = None  # (D, 3) their values (leaves with a tape)
+        self.asked = 0
+        self.evaluated = 0
+
+    def __call__(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        n = face_ids.shape[0]
+        self.asked += n
+        if n == 0:
+            return self._fresh(face_ids, bary)
+        keys = _point_keys(face_ids, bary)
+        old = 0 if self.keys is None else self.keys.shape[0]
+        both = keys if self.keys is None else torch.cat([self.keys, keys])
+        uniq, inv = torch.unique(both, dim=0, return_inverse=True)
+        dev = uniq.device
+        # position of each distinct point in the table: old rows keep theirs, new distinct
+        # points are appended in order of first appearance in this batch
+        pos = torch.full((uniq.shape[0],), -1, dtype=torch.long, device=dev)
+        if old:
+            pos[inv[:old]] = torch.arange(old, device=dev)
+        new_inv = inv[old:]
+        first = torch.full((uniq.shape[0],), n, dtype=torch.long, device=dev)
+        first.scatter_reduce_(0, new_inv, torch.arange(n, device=dev), "amin")
+        todo = torch.nonzero(pos < 0).squeeze(1)
+        todo = todo[torch.argsort(first[todo])]
+        pick = first[todo]
+        if pick.numel():
+            fresh = self._fresh(face_ids[pick], bary[pick])
+            self.evaluated += int(pick.numel())
+            pos[todo] = old + torch.arange(pick.numel(), device=dev)
+            self.keys = keys[pick] if self.keys is None else torch.cat([self.keys, keys[pick]])
+            self.table = fresh if self.table is None else torch.cat([self.table, fresh])
+        return self.table[pos[new_inv]]
+
+    def _fresh(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        if self.tape is None:
+            return self.fn(face_ids, bary)
+        out = self.fn(face_ids, bary)
+        leaf = out.detach().requires_grad_(True)
+        self.tape.append((out, leaf))
+        return leaf
+
+
 class _RenderJob:
     """One differentiable render: its scene, sensor, sample counts and the albedo tape.
 
@@ -653,27 +722,18 @@ class _RenderJob:
         )
         self.recording = False
         self.tape: list[tuple[torch.Tensor, torch.Tensor]] = []
-        self.memo: list[tuple[torch.Tensor, torch.Tensor, Any, Any]] = []
+        self.cache: _PointCache | None = None  # per pass: distinct points answered once
         self.image: Any = None
 
     def albedo(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
-        # Mitsuba asks twice per bounce with the same hits (BSDF eval and sample): answer
-        # repeated queries from a memo, so the model runs once per distinct batch of hits.
-        for f, b, value, leaf in self.memo:
-            if (leaf is not None) == self.recording and f.shape == face_ids.shape:
-                if torch.equal(f, face_ids) and torch.equal(b, bary):
-                    return leaf if self.recording else value
-        fn = self.inner
-        if not self.recording:  # primal pass: values only
-            with torch.no_grad():
-                value = fn(face_ids, bary)
-            self.memo.append((face_ids, bary, value, None))
-            return value
-        out = fn(face_ids, bary)
-        leaf = out.detach().requires_grad_(True)
-        self.tape.append((out, leaf))
-        self.memo.append((face_ids, bary, None, leaf))
-        return leaf
+        # Mitsuba asks about the same hits several times per pass (BSDF evaluation and
+        # sampling, replays): the pass's point cache runs the model once per distinct point.
+        if self.cache is None:
+            if self.recording:
+                self.cache = _PointCache(self.inner, tape=self.tape)
+            else:
+                self.cache = _PointCache(_without_grad(self.inner))
+        return self.cache(face_ids, bary)
 
     def run(self) -> Any:
         import drjit as dr
@@ -703,7 +763,7 @@ class _RenderJob:
             )
         finally:
             plugin.albedo_fn = self.inner
-            self.memo.clear()
+            self.cache = None
         return self.image
 
     def backward(self, grad: torch.Tensor) -> None:
@@ -714,6 +774,7 @@ class _RenderJob:
         plugin = self.scene.texture_plugin
         plugin.albedo_fn = self.albedo
         self.recording = True
+        self.cache = None
         try:
             weight = mi.TensorXf(grad.detach().to(torch.float32).contiguous())
             dr.backward(self.image * weight)
@@ -725,7 +786,7 @@ class _RenderJob:
             plugin.albedo_fn = self.inner
             self.recording = False
             self.tape.clear()
-            self.memo.clear()
+            self.cache = None
             self.image = None
 
 
