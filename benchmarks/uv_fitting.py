@@ -43,6 +43,7 @@ from hktex_engine.fitting.loop import run_fit
 from hktex_engine.fitting.uv import UVObjective, evaluate_albedo, fit_uv, initial_kernelset
 from hktex_engine.geometry.geodesics import SurfaceTracer
 from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.kernels.hkt import hkt_bytes
 from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.spectra.grid import compute_spectra
 from hktex_engine.spectra.interpolation import SpectralField
@@ -157,6 +158,7 @@ def run_mesh(name: str, args) -> dict:
         "psnr": psnr(pred, target),
         "bytes_zip": res.metrics.get("bytes_zip"),
         "bytes_raw": res.metrics.get("bytes_raw"),
+        "bytes_quantised": hkt_bytes(res.kernelset, quantised=True),  # .hkt v2 {raw, zip}
         "spectra_bytes": res.metrics["spectra_bytes"],
         "fit_s": res.timings["fit_s"],
         "query_ms_per_60k": 1e3 * q_s * 60_000 / len(eval_f),
@@ -260,6 +262,8 @@ def write_md(out: Path, result: dict) -> None:
             extra = (
                 f" (+ spectra {r['spectra_bytes'] / 1024:.0f} KB)" if "spectra_bytes" in r else ""
             )
+            if r.get("bytes_quantised"):
+                extra += f"; quantised .hkt {r['bytes_quantised']['zip'] / 1024:.1f} KB"
             views_cells = (
                 f"{r['view_psnr_all']:.2f} | {r['view_psnr_mesh']:.2f} | "
                 f"{r['view_ssim_all']:.4f} / {r['view_ssim_mesh']:.4f} | "
