@@ -108,7 +108,9 @@ def error_map_png(mesh, spectra, kernelset, path: Path, size: int = 512) -> dict
     return {"path": str(path), "rms": rms}
 
 
-def run_one(name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pictures) -> dict:
+def run_one(
+    name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pictures, save
+) -> dict:
     params = fit_preset(over.pop("preset"), **over)
     t0 = time.perf_counter()
     res = fit_uv(mesh, spectra, params)
@@ -134,8 +136,13 @@ def run_one(name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pic
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
     }
+    safe = "".join(c if c.isalnum() else "_" for c in label)[:60]
+    if save is not None:
+        from hktex_engine.kernels.hkt import save_hkt
+
+        save.mkdir(parents=True, exist_ok=True)
+        row["hkt"] = str(save_hkt(res.kernelset, save / f"{name}_{safe}.hkt"))
     if pictures is not None:
-        safe = "".join(c if c.isalnum() else "_" for c in label)[:60]
         row["error_map"] = error_map_png(
             mesh, spectra, res.kernelset, pictures / f"{name}_{safe}.png"
         )
@@ -189,6 +196,7 @@ def main() -> int:
     ap.add_argument("--k", type=int, default=64, help="spectra K unless a run sets spectra_k")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hktex" / "spectra")
     ap.add_argument("--pictures", type=Path, default=None, help="folder for error maps")
+    ap.add_argument("--save", type=Path, default=None, help="folder for the fitted .hkt files")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", action="store_true", help="only rewrite fidelity.md")
     args = ap.parse_args()
