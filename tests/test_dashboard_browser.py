@@ -297,8 +297,14 @@ def test_dashboard_upload_fit_progress_viewer_cancel(service, browser, assets, t
     browser.execute_script("window.scrollTo(0, 0)")
     browser.find_element(By.ID, "steps").clear()
     browser.find_element(By.ID, "steps").send_keys("100000")
+    old = newest_job(browser)["id"]
     browser.find_element(By.CSS_SELECTOR, "#meshes tr[data-mesh-id] button").click()
-    _wait(browser, "a cancel button", lambda d: (newest_job(d) or {}).get("cancel"))
+
+    def running(d) -> bool:  # the new job, running and past its first steps: a real cancel
+        job = newest_job(d) or {}
+        return job.get("id") != old and job.get("state") == "running" and job.get("step", 0) > 0
+
+    _wait(browser, "the long job to run", running, timeout=180)
     job_id = newest_job(browser)["id"]
     sel = f'#jobs tr[data-job-id="{job_id}"]'
     browser.execute_script(f"document.querySelector('{sel} button.cancel').click()")
@@ -311,5 +317,6 @@ def test_dashboard_upload_fit_progress_viewer_cancel(service, browser, assets, t
         timeout=120,
     )
     assert browser.find_elements(By.CSS_SELECTOR, f"{sel} button.retry")
+    assert newest_job(browser)["step"] > 0, "it was cancelled while running, not while queued"
     browser.execute_script(f"document.querySelector('{sel}').scrollIntoView()")
     shot(browser, tmp_path / "6_cancelled.png")
