@@ -1,6 +1,7 @@
-"""Kernel evaluation benchmark: query throughput, KNN backends, memory for a million points.
+"""Kernel evaluation benchmark: queries and training steps against a baseline, same run.
 
-    python benchmarks/kernels.py [--kernels 10000] [--queries 100000] [--million 1000000]
+    python benchmarks/kernels.py [--threads 1] [--baseline REF] [--queries 100000]
+        [--baseline-queries 20000] [--million 1000000] [--rounds 5]
 
 Setup: a torus of ~10k vertices with the reference grid shape (7 angles x 7 anisotropies,
 K = 256 eigenpairs per node, K_iso = 65). The grid's eigenvectors are random numbers of the
@@ -8,6 +9,14 @@ right shape and scale (computing 49 real K = 256 bases would take many minutes o
 CPU, and the cost of an evaluation does not depend on the values); the isotropic spectrum,
 hence the biharmonic embedding the KNN searches, is real. Kernels: 10k random centres with
 random attributes in their ranges, reference K_s = 100, K_c = 10.
+
+Every figure is a ratio against its baseline measured in the same process (the baseline is
+the evaluation code at git ``--baseline``: kernels/model.py, kernels/knn.py and
+spectra/interpolation.py loaded side by side with the current ones), timed alternately where
+it repeats, with wall and CPU seconds and the load average before and after (the 2 cores are
+shared; absolute times move with the load, ratios much less). Query throughput is also stated
+per GFLOP of the machine: the same run times a dense float32 matmul (torch, same threads)
+and divides points/s by its GFLOP/s.
 
 Writes benchmarks/results/kernels.json and .md.
 """
@@ -17,6 +26,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -36,7 +46,6 @@ from hktex_engine.evaluation.synthetic import torus  # noqa: E402
 from hktex_engine.geometry.operators import cotangent_stiffness, lumped_mass  # noqa: E402
 from hktex_engine.geometry.sampling import sample_surface  # noqa: E402
 from hktex_engine.kernels.hkt import hkt_bytes  # noqa: E402
-from hktex_engine.kernels.knn import CandidateSearch  # noqa: E402
 from hktex_engine.kernels.model import HeatKernelModel, KernelSet  # noqa: E402
 from hktex_engine.kernels.query import AlbedoQuery  # noqa: E402
 from hktex_engine.spectra.eigensolver import eigs_cold  # noqa: E402
@@ -107,95 +116,39 @@ def timed(fn, repeat: int = 1) -> tuple[float, object]:
     return best, out
 
 
-def bench_knn(query: AlbedoQuery, spectra: Spectra, n_q: int, k: int, rng) -> dict:
-    centres = query.model._centre_emb
-    f, b = sample_surface(spectra.vertices, spectra.faces, n_q, rng)
-    q = query.field.embedding_at(torch.as_tensor(f), torch.as_tensor(b, dtype=torch.float32))
-    out = {}
-    results = {}
-    for backend in ("faiss", "torch"):
-        build_s, search = timed(lambda backend=backend: CandidateSearch(centres, backend))
-        search_s, idx = timed(lambda search=search: search.search(q, k))
-        out[backend] = {"build_s": round(build_s, 4), "search_s": round(search_s, 3)}
-        results[backend] = idx
-    same = (results["faiss"] == results["torch"]).float().mean().item()
-    out["identical_fraction"] = round(same, 5)
-    out["queries"], out["centres"], out["k"] = n_q, int(centres.shape[0]), k
-    return out
+def matmul_rate(n: int = 2048, repeat: int = 5) -> dict:
+    """The machine's dense float32 matmul rate now (torch, the benchmark's thread count)."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    t, _ = timed(lambda: a @ b, repeat)
+    return {"n": n, "seconds": round(t, 4), "gflop_per_s": round(2 * n**3 / t / 1e9, 2)}
 
 
-def bench_pair_eval(query: AlbedoQuery, p: int, rng) -> dict:
-    """The chosen batched-matmul pair evaluation against a direct (P, K_s, 4, K) gather."""
-    model, field = query.model, query.field
-    f, b = sample_surface(field.spectra.vertices, field.spectra.faces, p, rng)
-    f, b = torch.as_tensor(f), torch.as_tensor(b, dtype=torch.float32)
-    cand = model._knn.search(field.embedding_at(f, b), model.config.k_search)
-    coef, _, nodes, weights, _ = model._terms
-
-    def bmm_path():
-        phi_y = field.node_values(f, b)
-        dots = torch.bmm(coef[cand], phi_y.transpose(1, 2))
-        return (dots.gather(2, nodes[cand]) * weights[cand]).sum(dim=2)
-
-    def gather_path():
-        phi_y = field.node_values(f, b)  # (P, G, K)
-        rows = phi_y[torch.arange(p)[:, None, None], nodes[cand]]  # (P, K_s, 4, K)
-        interp = (rows * weights[cand][..., None]).sum(dim=2)
-        return (interp * coef[cand]).sum(dim=2)
-
-    with torch.no_grad():
-        t_bmm, h1 = timed(bmm_path, 3)
-        t_gather, h2 = timed(gather_path, 3)
-    err = float((h1 - h2).abs().max() / h1.abs().max())
-    return {
-        "points": p,
-        "bmm_s": round(t_bmm, 4),
-        "gather_s": round(t_gather, 4),
-        "max_rel_diff": err,
+def load_baseline(ref: str):
+    """The evaluation modules as of git ``ref``, importable beside the current ones."""
+    tmp = Path(tempfile.mkdtemp(prefix="hktex_baseline_"))
+    files = {
+        "interpolation": "hktex_engine/spectra/interpolation.py",
+        "knn": "hktex_engine/kernels/knn.py",
+        "model": "hktex_engine/kernels/model.py",
     }
-
-
-def bench_train_step(query: AlbedoQuery, ks: KernelSet, p: int, rng) -> dict:
-    """One forward + backward with grad for all kernel parameters (what a fit step costs)."""
-    model = HeatKernelModel.from_kernelset(ks, query.field)
-    f, b = sample_surface(query.field.spectra.vertices, query.field.spectra.faces, p, rng)
-    target = torch.rand(p, 3)
-
-    def step():
-        model.zero_grad()
-        loss = ((model.albedo(f, b) - target) ** 2).mean()
-        loss.backward()
-
-    step()  # build the KNN index once
-    t, _ = timed(step, 2)
-    return {"points": p, "forward_backward_s": round(t, 3)}
-
-
-def load_before(ref: str):
-    """The evaluation modules as of git ``ref`` (interpolation, knn, kernels), importable side
-    by side with the current ones, so before/after are timed in the same process and load."""
-    tmp = Path(tempfile.mkdtemp(prefix="hktex_before_"))
-    names = ("interpolation", "knn", "kernels")
-    for name in names:
+    for name, path in files.items():
         src = subprocess.run(
-            ["git", "show", f"{ref}:hktex_engine/{name}.py"],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            check=True,
+            ["git", "show", f"{ref}:{path}"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout
-        for other in names:
-            src = src.replace(f"from hktex_engine.{other} import", f"from _before_{other} import")
-        (tmp / f"_before_{name}.py").write_text(src)
+        for other, other_path in files.items():
+            module = other_path[:-3].replace("/", ".")
+            src = src.replace(f"from {module} import", f"from _baseline_{other} import")
+        (tmp / f"_baseline_{name}.py").write_text(src)
     sys.path.insert(0, str(tmp))
     return (
-        importlib.import_module("_before_interpolation"),
-        importlib.import_module("_before_kernels"),
+        importlib.import_module("_baseline_interpolation"),
+        importlib.import_module("_baseline_model"),
     )
 
 
-def _dense_colors(model, face_ids: np.ndarray, bary: np.ndarray, chunk: int) -> np.ndarray:
-    """AlbedoQuery.colors' loop (sorted by face, chunked, no grad) for any model version."""
+def baseline_colors(model, face_ids: np.ndarray, bary: np.ndarray, chunk: int) -> np.ndarray:
+    """The baseline's AlbedoQuery.colors loop (sorted by face, chunked, no grad)."""
     order = np.argsort(face_ids, kind="stable")
     f, b = face_ids[order], bary[order]
     out = np.empty((f.shape[0], 3), dtype=np.float32)
@@ -207,246 +160,213 @@ def _dense_colors(model, face_ids: np.ndarray, bary: np.ndarray, chunk: int) -> 
     return out
 
 
-def bench_before_after(query: AlbedoQuery, ks: KernelSet, args, rng) -> dict:
-    """Training step and query of the code at ``--before`` against the current code, timed
-    alternately in the same run (the shared machine's load drifts; alternation spreads it)."""
-    interp_old, kernels_old = load_before(args.before)
-    spectra = query.field.spectra
-    variants = {
-        "before": kernels_old.HeatKernelModel.from_kernelset(
-            ks, interp_old.SpectralField(spectra, device="cpu")
-        ),
-        "after": HeatKernelModel.from_kernelset(ks, query.field),
+def clock(fn):
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn()
+    return time.perf_counter() - t0, time.process_time() - c0, out
+
+
+def load_now() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def bench_query(query: AlbedoQuery, base_model, spectra, args, rng, rate: dict) -> dict:
+    """Query throughput: the current AlbedoQuery (whole-mesh candidate tables) against the
+    baseline's loop, on the same points; colours compared on the common points."""
+    f, b = sample_surface(spectra.vertices, spectra.faces, args.queries, rng)
+    nb = min(args.baseline_queries, args.queries)
+    res: dict = {"points": args.queries, "baseline_points": nb, "load_before": load_now()}
+    # the tables are built by the first dense call; timed on their own
+    build_w, build_c, _ = clock(lambda: query.model.prepare_tables())
+    tables = query.model._vtables
+    res["tables"] = {
+        "build_wall_s": round(build_w, 2),
+        "build_cpu_s": round(build_c, 2),
+        "mb": round(tables.nbytes / 2**20, 1),
+        "width": int(tables.kid.shape[1]),
+        "mean_list": round(float((tables.kid < len(query.model)).sum(1).float().mean()), 1),
     }
+    print("tables", json.dumps(res["tables"]), flush=True)
+    runs = {"current": [], "baseline": []}
+    colors = {}
+    for _ in range(2):  # alternate: baseline, current, baseline, current
+        w, c, colors["baseline"] = clock(
+            lambda: baseline_colors(base_model, f[:nb], b[:nb], query.chunk_points)
+        )
+        runs["baseline"].append((w, c))
+        w, c, colors["current"] = clock(lambda: query.colors(f, b))
+        runs["current"].append((w, c))
+        print("query round", json.dumps(runs), flush=True)
+    for name, n in (("current", args.queries), ("baseline", nb)):
+        w = min(x[0] for x in runs[name])
+        c = min(x[1] for x in runs[name])
+        res[name] = {
+            "wall_s": round(w, 2),
+            "cpu_s": round(c, 2),
+            "points_per_s": round(n / w),
+            "points_per_cpu_s": round(n / c),
+        }
+    res["ratio_points_per_s"] = round(
+        res["current"]["points_per_s"] / res["baseline"]["points_per_s"], 2
+    )
+    res["ratio_points_per_cpu_s"] = round(
+        res["current"]["points_per_cpu_s"] / res["baseline"]["points_per_cpu_s"], 2
+    )
+    with_build = args.queries / (res["current"]["wall_s"] + build_w)
+    res["current"]["points_per_s_including_tables"] = round(with_build)
+    res["ratio_including_tables"] = round(with_build / res["baseline"]["points_per_s"], 2)
+    res["points_per_gflop"] = round(res["current"]["points_per_s"] / rate["gflop_per_s"], 1)
+    res["baseline_points_per_gflop"] = round(
+        res["baseline"]["points_per_s"] / rate["gflop_per_s"], 1
+    )
+    diff = np.abs(colors["current"][:nb] - colors["baseline"]).max(axis=1)
+    res["max_color_diff"] = float(diff.max())
+    res["points_beyond_1e-4"] = int((diff > 1e-4).sum())
+    res["load_after"] = load_now()
+    return res
+
+
+def bench_train(base_model_cls, base_field, ks: KernelSet, field, spectra, args, rng) -> dict:
+    """Training step (forward, backward, Adam, projection) on fresh 512-point batches, the
+    baseline and the current model alternately, from the same kernels."""
+    variants = {
+        "baseline": base_model_cls.from_kernelset(ks, base_field),
+        "current": HeatKernelModel.from_kernelset(ks, field),
+    }
+    opts = {n: torch.optim.Adam(m.parameters(), lr=1e-2) for n, m in variants.items()}
     f, b = sample_surface(spectra.vertices, spectra.faces, 512, rng)
     target = torch.rand(512, 3)
     outs, grads = {}, {}
-
-    def step(model, f, b, target, opt=None):
+    for name, model in variants.items():  # same parameters: compare outputs and gradients
         model.zero_grad()
         out = model.albedo(f, b)
         ((out - target) ** 2).mean().backward()
-        if opt is not None:
-            opt.step()
-            model.project_()
-        return out
-
-    for name, model in variants.items():  # warm up: KNN index, allocator
-        outs[name] = step(model, f, b, target).detach()
+        outs[name] = out.detach()
         grads[name] = {n: p.grad.clone() for n, p in model.named_parameters()}
-    # Timed steps as in a fit: a fresh batch each round and an Adam step (lr 1e-2 moves
-    # some kernels into other grid cells, so caches keyed on cells see realistic churn).
-    opts = {n: torch.optim.Adam(m.parameters(), lr=1e-2) for n, m in variants.items()}
-    wall = {n: [] for n in variants}
-    cpu = {n: [] for n in variants}
-    regathered = []
+    times: dict = {n: [] for n in variants}
+    load_before = load_now()
     for _ in range(args.rounds):
         fr, br = sample_surface(spectra.vertices, spectra.faces, 512, rng)
         tr = torch.rand(512, 3)
         for name, model in variants.items():
-            t0, c0 = time.perf_counter(), time.process_time()
-            step(model, fr, br, tr, opts[name])
-            wall[name].append(time.perf_counter() - t0)
-            cpu[name].append(time.process_time() - c0)
-        regathered.append(variants["after"]._rows.regathered)
-    res: dict = {
-        "train_step": {
-            "points": 512,
-            "rounds": args.rounds,
-            "includes": "forward, backward, Adam step, projection",
-            "centre_rows_regathered_per_step": regathered,
-        }
-    }
-    for name in variants:
-        res["train_step"][name] = {
-            "min_s": round(min(wall[name]), 3),
-            "median_s": round(statistics.median(wall[name]), 3),
-            "median_cpu_s": round(statistics.median(cpu[name]), 3),
-        }
-    res["train_step"]["max_albedo_diff"] = float((outs["before"] - outs["after"]).abs().max())
-    res["train_step"]["max_rel_grad_diff"] = {
-        n: float(
-            (grads["before"][n] - grads["after"][n]).abs().max()
-            / grads["before"][n].abs().max().clamp(min=1e-30)
-        )
-        for n in grads["after"]
-    }
-    print("before/after train", json.dumps(res["train_step"]), flush=True)
 
-    fq, bq = sample_surface(spectra.vertices, spectra.faces, args.compare_queries, rng)
-    times = {n: [] for n in variants}
-    colors = {}
-    for _ in range(2):
-        for name, model in variants.items():
-            t0 = time.perf_counter()
-            colors[name] = _dense_colors(model, fq, bq, query.chunk_points)
-            times[name].append(time.perf_counter() - t0)
-    diff = np.abs(colors["before"] - colors["after"]).max(axis=1)
-    res["query"] = {
-        "points": args.compare_queries,
-        **{
-            n: {"best_s": round(min(t), 2), "points_per_s": round(len(fq) / min(t))}
-            for n, t in times.items()
-        },
-        "max_color_diff": float(diff.max()),
-        "points_beyond_1e-4": int((diff > 1e-4).sum()),
-    }
-    print("before/after query", json.dumps(res["query"]), flush=True)
-    res["ref"] = args.before
+            def step(model=model, name=name, fr=fr, br=br, tr=tr):
+                model.zero_grad()
+                ((model.albedo(fr, br) - tr) ** 2).mean().backward()
+                opts[name].step()
+                model.project_()
+
+            w, c, _ = clock(step)
+            times[name].append((w, c))
+    res: dict = {"points": 512, "rounds": args.rounds, "load_before": load_before}
+    for name in variants:
+        res[name] = {
+            "min_wall_s": round(min(x[0] for x in times[name]), 3),
+            "median_wall_s": round(statistics.median(x[0] for x in times[name]), 3),
+            "median_cpu_s": round(statistics.median(x[1] for x in times[name]), 3),
+        }
+    res["ratio_median_wall"] = round(
+        res["baseline"]["median_wall_s"] / res["current"]["median_wall_s"], 2
+    )
+    res["ratio_median_cpu"] = round(
+        res["baseline"]["median_cpu_s"] / res["current"]["median_cpu_s"], 2
+    )
+    res["max_albedo_diff"] = float((outs["baseline"] - outs["current"]).abs().max())
+    res["max_rel_grad_diff"] = max(
+        float(
+            (grads["baseline"][n] - grads["current"][n]).abs().max()
+            / grads["baseline"][n].abs().max().clamp(min=1e-30)
+        )
+        for n in grads["current"]
+    )
+    res["load_after"] = load_now()
     return res
+
+
+def bench_million(query: AlbedoQuery, spectra, n: int, rng) -> dict:
+    fm, bm = sample_surface(spectra.vertices, spectra.faces, n, rng)
+    base_mb = rss_mb("VmRSS")
+    peak_rss_reset()
+    w, c, _ = clock(lambda: query.colors(fm, bm))
+    peak = rss_mb("VmHWM")
+    return {
+        "points": n,
+        "wall_s": round(w, 1),
+        "cpu_s": round(c, 1),
+        "points_per_s": round(n / w),
+        "rss_before_mb": round(base_mb, 1),
+        "peak_rss_mb": round(peak, 1),
+        "peak_above_before_mb": round(peak - base_mb, 1),
+        "inputs_and_output_mb": round((fm.nbytes + bm.nbytes + n * 12) / 2**20, 1),
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--kernels", type=int, default=10_000)
     ap.add_argument("--queries", type=int, default=100_000)
-    ap.add_argument("--million", type=int, default=1_000_000)
+    ap.add_argument("--baseline-queries", type=int, default=20_000)
+    ap.add_argument("--million", type=int, default=1_000_000, help="0 skips the memory run")
     ap.add_argument("--k", type=int, default=256)
+    ap.add_argument("--rounds", type=int, default=5, help="alternating training-step rounds")
+    ap.add_argument("--baseline", default="efcd0ee", help="git ref of the baseline code")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    ap.add_argument(
-        "--only-million",
-        action="store_true",
-        help="skip to the million-point memory run; results go to kernels_million.json/.md",
-    )
-    ap.add_argument(
-        "--time-budget",
-        type=float,
-        default=540.0,
-        help="seconds for the whole run; the million-point run shrinks to fit (and says so)",
-    )
-    ap.add_argument(
-        "--before",
-        default="fc1d1ac",
-        help="git ref whose interpolation/knn/kernels modules are timed against the current ones",
-    )
-    ap.add_argument("--rounds", type=int, default=5, help="alternating training-step rounds")
-    ap.add_argument("--compare-queries", type=int, default=20_000)
-    ap.add_argument("--skip-compare", action="store_true")
     args = ap.parse_args()
     started = time.perf_counter()
     if args.threads:
         torch.set_num_threads(args.threads)
     rng = np.random.default_rng(0)
     config = SpectralConfig(k=args.k)
-    t0 = time.perf_counter()
     spectra = build_spectra(config, rng)
     ks = random_kernelset(spectra, args.kernels, rng)
-    setup_s = time.perf_counter() - t0
+    interp_old, model_old = load_baseline(args.baseline)
+    base_field = interp_old.SpectralField(spectra, device="cpu")
     t_init, query = timed(lambda: AlbedoQuery(spectra, ks, device="cpu"))
+    base_model = model_old.HeatKernelModel.from_kernelset(ks, base_field)
+    with torch.no_grad():
+        base_model.refresh()
     res: dict = {
         "command": "python " + " ".join(sys.argv),
         "machine": machine_info(device="cpu"),
+        "baseline": args.baseline,
         "setup": {
             "vertices": int(spectra.vertices.shape[0]),
             "faces": int(spectra.faces.shape[0]),
             "grid_nodes": int(spectra.evecs.shape[1]),
             "k": args.k,
             "k_iso": config.k_iso,
-            "evecs_mb": round(spectra.evecs.nbytes / 2**20, 1),
             "kernels": args.kernels,
             "k_search": ks.kernel_config.k_search,
             "k_blend": ks.kernel_config.k_blend,
-            "setup_s": round(setup_s, 2),
             "query_state_build_s": round(t_init, 3),
             "chunk_points": query.chunk_points,
-            "bytes_per_point_estimate": query.bytes_per_point(),
         },
     }
-    print(json.dumps(res["setup"]), flush=True)
+    res["matmul"] = matmul_rate()
+    print("matmul", json.dumps(res["matmul"]), flush=True)
     save(res, args.out)
-    if args.only_million:
-        return million_only(res, query, spectra, args, rng)
-    if not args.skip_compare:
-        res["before_after"] = bench_before_after(query, ks, args, rng)
-        save(res, args.out)
-    res["knn"] = bench_knn(query, spectra, args.queries, ks.kernel_config.k_search, rng)
-    print("knn", json.dumps(res["knn"]), flush=True)
-    save(res, args.out)
-    res["pair_eval"] = bench_pair_eval(query, 1024, rng)
-    print("pair_eval", json.dumps(res["pair_eval"]), flush=True)
-    save(res, args.out)
-    res["train_step"] = bench_train_step(query, ks, 512, rng)
-    print("train_step", json.dumps(res["train_step"]), flush=True)
-    save(res, args.out)
-
-    f, b = sample_surface(spectra.vertices, spectra.faces, args.queries, rng)
-    t_q, colors = timed(lambda: query.colors(f, b))
-    res["query"] = {
-        "points": args.queries,
-        "seconds": round(t_q, 2),
-        "points_per_s": round(args.queries / t_q),
-    }
+    res["query"] = bench_query(query, base_model, spectra, args, rng, res["matmul"])
     print("query", json.dumps(res["query"]), flush=True)
+    res["matmul_after_query"] = matmul_rate()
     save(res, args.out)
-
+    res["train_step"] = bench_train(
+        model_old.HeatKernelModel, base_field, ks, query.field, spectra, args, rng
+    )
+    print("train", json.dumps(res["train_step"]), flush=True)
+    save(res, args.out)
     compact, full = hkt_bytes(ks), hkt_bytes(ks, compact=False)
-    # (the colour effect of compact storage is measured on real spectra in tests/test_hkt.py;
-    # random eigenvectors here would exaggerate it)
     res["hkt"] = {
         "compact_raw_bytes": compact["raw"],
         "compact_zip_bytes": compact["zip"],
         "float32_raw_bytes": full["raw"],
         "float32_zip_bytes": full["zip"],
     }
-    print("hkt", json.dumps(res["hkt"]), flush=True)
-    save(res, args.out)
-
-    left = args.time_budget - (time.perf_counter() - started)
-    n_million = int(min(args.million, max(0.0, 0.8 * left) * res["query"]["points_per_s"]))
-    n_million = n_million // 1000 * 1000
-    if n_million:
-        fm, bm = sample_surface(spectra.vertices, spectra.faces, n_million, rng)
-        base_mb = rss_mb("VmRSS")
-        peak_rss_reset()
-        t_m, _ = timed(lambda: query.colors(fm, bm))
-        peak = rss_mb("VmHWM")
-        res["million"] = {
-            "points": n_million,
-            "requested_points": args.million,
-            "seconds": round(t_m, 1),
-            "points_per_s": round(n_million / t_m),
-            "rss_before_mb": round(base_mb, 1),
-            "peak_rss_mb": round(peak, 1),
-            "peak_above_before_mb": round(peak - base_mb, 1),
-            "inputs_and_output_mb": round((fm.nbytes + bm.nbytes + n_million * 12) / 2**20, 1),
-        }
+    if args.million:
+        res["million"] = bench_million(query, spectra, args.million, rng)
         print("million", json.dumps(res["million"]), flush=True)
     res["total_s"] = round(time.perf_counter() - started, 1)
     save(res, args.out)
-
-
-def million_only(res: dict, query: AlbedoQuery, spectra: Spectra, args, rng) -> None:
-    """The whole requested point count, no time budget: peak memory is what this is for."""
-    fm, bm = sample_surface(spectra.vertices, spectra.faces, args.million, rng)
-    base_mb = rss_mb("VmRSS")
-    peak_rss_reset()
-    t_m, _ = timed(lambda: query.colors(fm, bm))
-    peak = rss_mb("VmHWM")
-    res["million"] = {
-        "points": args.million,
-        "seconds": round(t_m, 1),
-        "points_per_s": round(args.million / t_m),
-        "rss_before_mb": round(base_mb, 1),
-        "peak_rss_mb": round(peak, 1),
-        "peak_above_before_mb": round(peak - base_mb, 1),
-        "inputs_and_output_mb": round((fm.nbytes + bm.nbytes + args.million * 12) / 2**20, 1),
-    }
-    print("million", json.dumps(res["million"]), flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "kernels_million.json").write_text(json.dumps(res, indent=1))
-    m, s = res["million"], res["setup"]
-    (args.out / "kernels_million.md").write_text(
-        "# Kernel query memory for a million points (benchmarks/kernels.py --only-million)\n\n"
-        f"Command: `{res['command']}`; machine as in kernels.md (load average at start "
-        f"{res['machine']['load_average_1min']}, {res['machine']['torch_threads']} threads).\n"
-        f"Grid {s['grid_nodes']} nodes x K = {s['k']}, {s['vertices']} vertices, {s['kernels']} "
-        f"kernels, K_s = {s['k_search']}, chunk {s['chunk_points']} points.\n\n"
-        f"{m['points']} points in {m['seconds']} s ({m['points_per_s']} points/s); process RSS "
-        f"{m['rss_before_mb']} MB before (spectra arrays held twice: numpy and the device copy), "
-        f"peak {m['peak_rss_mb']} MB, {m['peak_above_before_mb']} MB above the warm query state "
-        f"(inputs + output {m['inputs_and_output_mb']} MB).\n"
-    )
 
 
 def save(res: dict, out: Path) -> None:
@@ -457,75 +377,91 @@ def save(res: dict, out: Path) -> None:
 
 
 def render_md(res: dict) -> str:
-    if "hkt" not in res:
-        return (
-            "# Kernel evaluation benchmark (incomplete run)\n\n```\n"
-            + json.dumps(res, indent=1)
-            + "\n```\n"
-        )
-    s, k, q = res["setup"], res["knn"], res["query"]
+    m, s = res["machine"], res["setup"]
     lines = [
         "# Kernel evaluation benchmark (benchmarks/kernels.py)",
         "",
         f"Command: `{res['command']}`  ",
-        f"Machine: {res['machine']['platform']}, {res['machine']['cpus']} CPU cores "
-        f"(shared with other jobs; load average at start {res['machine']['load_average_1min']}), "
-        f"torch {res['machine']['torch']}, {res['machine']['torch_threads']} "
-        "threads, CPU only.",
+        f"Machine: {m.get('cpu', m.get('platform'))}, {m['cpus']} CPU cores shared with "
+        f"other jobs, torch {m.get('torch')}, {m.get('torch_threads')} threads, CPU only.  ",
+        f"Baseline: the evaluation code at `{res['baseline']}` (kernels/model.py, knn.py, "
+        "spectra/interpolation.py), run in the same process, alternately.",
         "",
-        f"Setup: torus, {s['vertices']} vertices; grid {s['grid_nodes']} nodes x K = {s['k']} "
-        f"(random eigenvectors of the right shape, {s['evecs_mb']} MB float32; real K_iso = "
-        f"{s['k_iso']} isotropic spectrum); {s['kernels']} kernels, K_s = {s['k_search']}, "
-        f"K_c = {s['k_blend']}; chunk {s['chunk_points']} points.",
+        f"Setup: torus, {s['vertices']} vertices, {s['faces']} faces; grid {s['grid_nodes']} "
+        f"nodes x K = {s['k']} (random eigenvectors of the right shape; real K_iso = "
+        f"{s['k_iso']} isotropic spectrum, so the embedding the search uses is real); "
+        f"{s['kernels']} kernels, K_s = {s['k_search']}, K_c = {s['k_blend']}; chunk "
+        f"{s['chunk_points']} points.",
         "",
-        "| measure | value |",
-        "|---|---|",
-        f"| query throughput ({q['points']} points) | {q['points_per_s']} points/s ({q['seconds']} s) |",
-        f"| query state build (coefficients + KNN index) | {s['query_state_build_s']} s |",
-        f"| KNN {k['centres']} centres x {k['queries']} queries, k = {k['k']}: faiss IndexFlatL2 | "
-        f"{k['faiss']['search_s']} s (build {k['faiss']['build_s']} s) |",
-        f"| same, torch addmm + topk (chunked) | {k['torch']['search_s']} s (build {k['torch']['build_s']} s) |",
-        f"| faiss and torch neighbour lists identical | {k['identical_fraction'] * 100:.3f} % of entries |",
-        f"| pair evaluation, {res['pair_eval']['points']} points: batched matmul | {res['pair_eval']['bmm_s']} s |",
-        f"| same, direct (P, K_s, 4, K) gather | {res['pair_eval']['gather_s']} s |",
-        f"| one training forward+backward, {res['train_step']['points']} points | "
-        f"{res['train_step']['forward_backward_s']} s |",
-        f"| .hkt compact: raw / zip bytes | {res['hkt']['compact_raw_bytes']} / {res['hkt']['compact_zip_bytes']} |",
-        f"| .hkt float32: raw / zip bytes | {res['hkt']['float32_raw_bytes']} / {res['hkt']['float32_zip_bytes']} |",
     ]
-    if "million" in res:
-        m = res["million"]
-        if m["points"] < m["requested_points"]:
-            lines.append(
-                f"| (million run shrunk to {m['points']} points to fit the time budget on the shared CPU) | |"
-            )
+    mm = res["matmul"]
+    lines.append(
+        f"Dense float32 matmul ({mm['n']}^3, same threads): {mm['gflop_per_s']} GFLOP/s "
+        + (
+            f"(after the query section: {res['matmul_after_query']['gflop_per_s']})."
+            if "matmul_after_query" in res
+            else "."
+        )
+    )
+    if "query" in res:
+        q = res["query"]
+        t = q["tables"]
         lines += [
-            f"| {m['points']} points: time | {m['seconds']} s ({m['points_per_s']} points/s) |",
-            f"| {m['points']} points: peak RSS / above the warm query state | "
-            f"{m['peak_rss_mb']} MB / {m['peak_above_before_mb']} MB (inputs + output "
-            f"{m['inputs_and_output_mb']} MB) |",
+            "",
+            f"## Queries (load average {q['load_before']} before, {q['load_after']} after)",
+            "",
+            "| measure | baseline | current | ratio |",
+            "|---|---|---|---|",
+            f"| points/s (wall; baseline on {q['baseline_points']} points, current on "
+            f"{q['points']}) | {q['baseline']['points_per_s']} | {q['current']['points_per_s']} "
+            f"| {q['ratio_points_per_s']}x |",
+            f"| points per CPU second | {q['baseline']['points_per_cpu_s']} | "
+            f"{q['current']['points_per_cpu_s']} | {q['ratio_points_per_cpu_s']}x |",
+            f"| points per GFLOP of the measured matmul rate | {q['baseline_points_per_gflop']} | "
+            f"{q['points_per_gflop']} | |",
+            f"| points/s including the one-off table build | | "
+            f"{q['current']['points_per_s_including_tables']} | {q['ratio_including_tables']}x |",
+            "",
+            f"Candidate tables (built once per kernel set, whole mesh): {t['build_wall_s']} s "
+            f"wall / {t['build_cpu_s']} s CPU, {t['mb']} MB, lists of {t['mean_list']} kernels on "
+            f"average ({t['width']} at most). Colours against the baseline: max difference "
+            f"{q['max_color_diff']:.2e}, {q['points_beyond_1e-4']} points beyond 1e-4.",
         ]
-    if "before_after" in res:
-        ba = res["before_after"]
-        tr, qu = ba["train_step"], ba["query"]
+    if "train_step" in res:
+        tr = res["train_step"]
         lines += [
             "",
-            f"Before (`{ba['ref']}`) / after (this commit), same process, timed alternately "
-            f"({tr['rounds']} training rounds, 2 query rounds):",
+            f"## Training step (forward, backward, Adam, projection; {tr['points']} points, "
+            f"{tr['rounds']} alternating rounds; load {tr['load_before']} / {tr['load_after']})",
             "",
-            "| measure | before | after |",
-            "|---|---|---|",
-            f"| training step (forward, backward, Adam, projection), {tr['points']} points, min / median wall s | "
-            f"{tr['before']['min_s']} / {tr['before']['median_s']} | "
-            f"{tr['after']['min_s']} / {tr['after']['median_s']} |",
-            f"| same, median CPU s | {tr['before']['median_cpu_s']} | {tr['after']['median_cpu_s']} |",
-            f"| query {qu['points']} points (AlbedoQuery loop), points/s | "
-            f"{qu['before']['points_per_s']} | {qu['after']['points_per_s']} |",
+            "| measure | baseline | current | ratio |",
+            "|---|---|---|---|",
+            f"| median wall s | {tr['baseline']['median_wall_s']} | {tr['current']['median_wall_s']} "
+            f"| {tr['ratio_median_wall']}x |",
+            f"| median CPU s | {tr['baseline']['median_cpu_s']} | {tr['current']['median_cpu_s']} "
+            f"| {tr['ratio_median_cpu']}x |",
+            f"| min wall s | {tr['baseline']['min_wall_s']} | {tr['current']['min_wall_s']} | |",
             "",
-            f"Training albedo max difference {tr['max_albedo_diff']:.2e}; largest relative gradient "
-            f"difference {max(tr['max_rel_grad_diff'].values()):.2e} "
-            f"({max(tr['max_rel_grad_diff'], key=tr['max_rel_grad_diff'].get)}); query colours max "
-            f"difference {qu['max_color_diff']:.2e}, {qu['points_beyond_1e-4']} points beyond 1e-4.",
+            f"Same parameters: albedo max difference {tr['max_albedo_diff']:.2e}, largest "
+            f"relative gradient difference {tr['max_rel_grad_diff']:.2e}.",
+        ]
+    if "million" in res:
+        mi = res["million"]
+        lines += [
+            "",
+            f"## {mi['points']} points (current)",
+            "",
+            f"{mi['wall_s']} s wall, {mi['cpu_s']} s CPU ({mi['points_per_s']} points/s); peak RSS "
+            f"{mi['peak_rss_mb']} MB, {mi['peak_above_before_mb']} MB above the warm query state "
+            f"(inputs + output {mi['inputs_and_output_mb']} MB).",
+        ]
+    if "hkt" in res:
+        h = res["hkt"]
+        lines += [
+            "",
+            f".hkt, {s['kernels']} kernels: compact {h['compact_raw_bytes']} raw / "
+            f"{h['compact_zip_bytes']} zip bytes; float32 {h['float32_raw_bytes']} / "
+            f"{h['float32_zip_bytes']}.",
         ]
     return "\n".join(lines) + "\n"
 

@@ -35,7 +35,8 @@ from hktex_engine.kernels.tables import (
     VertexTables,
     build_tables,
     face_tables,
-    point_terms,
+    point_distances,
+    point_responses,
     star_radius,
 )
 from hktex_engine.spectra.interpolation import RowCache, SpectralField
@@ -464,19 +465,19 @@ class HeatKernelModel(nn.Module):
         n_k = len(self)
         faces = torch.unique(face_ids)
         ft = face_tables(self.field, tables, faces, min(self.config.k_search, n_k))
-        kid, h, d2 = point_terms(ft, face_ids, bary)
-        valid = kid < n_k
-        safe = torch.where(valid, kid, torch.zeros_like(kid))
-        _, norm, _, _, _ = self._terms
-        w = torch.exp(-d2 / (2.0 * self.config.sigma_b**2)).to(h.dtype)
-        r = h * w / norm[safe]
-        rho = soft_step(r, self.threshold[safe], self.sharpness[safe])
-        # padding gets distinct ids above every kernel's (the rule needs unique ids per row)
+        row, kid, d2 = point_distances(ft, face_ids, bary)
+        # exact K_s cut first (distance, then kernel id; padding gets distinct ids above every
+        # kernel's, the rule needs unique ids per row), then responses of those only
         pad_ids = n_k + torch.arange(kid.shape[1], device=kid.device).expand_as(kid)
-        tie_id = torch.where(valid, kid, pad_ids)
+        tie_id = torch.where(kid < n_k, kid, pad_ids)
         k_s = min(self.config.k_search, n_k)
         pos = nearest_by_rule(d2, tie_id, k_s)
-        rho, d2, kid = rho.gather(1, pos), d2.gather(1, pos), kid.gather(1, pos)
+        d2, kid = d2.gather(1, pos), kid.gather(1, pos)
+        h = point_responses(ft, row, pos, bary)
+        _, norm, _, _, _ = self._terms
+        w = torch.exp(-d2 / (2.0 * self.config.sigma_b**2)).to(h.dtype)
+        r = h * w / norm[kid]
+        rho = soft_step(r, self.threshold[kid], self.sharpness[kid])
         top = select_by_rule(rho, d2, kid, min(self.config.k_blend, k_s))
         rho_top, kid = rho.gather(1, top), kid.gather(1, top)
         weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])

@@ -91,8 +91,8 @@ def build_tables(
     ``D_v`` needs only an upper bound: the largest exact distance to any ``K_s`` centres, so
     the ``K_s`` found by ``search`` (a :class:`~hktex_engine.kernels.knn.CandidateSearch`,
     approximate ranking is fine) serve; without one, a ``topk`` over the distance rows.
-    Distances are float64 ``|a|^2 + |c|^2 - 2 a.c`` (one GEMM per chunk; its round-off,
-    ~1e-16 of ``|a|^2 + |c|^2``, is far below what the lists' slack covers).
+    The lists come from one GEMM per chunk of vertices in the compute dtype, the test widened
+    by its round-off; the kept pairs' distances are then computed directly in float64.
     """
     n_k = centres.shape[0]
     dev = centres.device
@@ -100,7 +100,13 @@ def build_tables(
     c64 = centres.to(torch.float64)
     c_sq = (c64 * c64).sum(dim=1)
     slack = 1e-12 * (float(c_sq.max()) + float((emb * emb).sum(dim=1).max()))
-    per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * 8))
+    cw = centres.to(field.dtype)
+    cw_sq = (cw * cw).sum(dim=1)
+    # the list test runs on the GEMM's distances in the compute dtype, widened by their
+    # round-off (|a|^2 + |c|^2 - 2 a.c: a few ulps of |a|^2 + max |c|^2); the kept pairs'
+    # distances are then computed exactly, elementwise, below
+    eps = float(torch.finfo(field.dtype).eps)
+    per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * cw.element_size()))
     if search is not None:
         near = search.search(field.embedding[verts].to(centres.dtype), k_s)  # (V, k_s)
         reach_v = torch.empty(verts.shape[0], dtype=torch.float64, device=dev)
@@ -112,16 +118,19 @@ def build_tables(
     r_idx, c_idx, vals = [], [], []
     for start in range(0, verts.shape[0], per_row):
         v = verts[start : start + per_row]
-        e = emb[v]
-        d2 = torch.addmm(c_sq[None, :], e, c64.T, beta=1.0, alpha=-2.0)
-        d2 += (e * e).sum(dim=1)[:, None]
+        e = field.embedding[v]
+        e_sq = (e * e).sum(dim=1)
+        d2 = torch.addmm(cw_sq[None, :], e, cw.T, beta=1.0, alpha=-2.0)
+        d2 += e_sq[:, None]
+        err = 64.0 * eps * (e_sq.to(torch.float64) + float(cw_sq.max()))
         if search is not None:
             kth = reach_v[start : start + per_row]
         else:
-            kth = torch.sqrt(torch.topk(d2, k_s, dim=1, largest=False).values[:, -1].clamp(min=0))
+            top = torch.topk(d2, k_s, dim=1, largest=False).values[:, -1].to(torch.float64)
+            kth = torch.sqrt((top + err).clamp(min=0))
         reach = kth + 2.0 * radius[v]
-        bound = reach * reach * (1 + 1e-9) + slack
-        rr, cc = torch.nonzero(d2 <= bound[:, None], as_tuple=True)
+        bound = (reach * reach + slack) * (1 + 1e-6) + err
+        rr, cc = torch.nonzero(d2 <= bound.to(d2.dtype)[:, None], as_tuple=True)
         r_idx.append(rr + start)
         c_idx.append(cc)
     rr, cc = torch.cat(r_idx), torch.cat(c_idx)  # row-major: kernel ids ascending per row
@@ -239,8 +248,9 @@ class FaceTables:
     rows: torch.Tensor  # (m,) face -> row, -1 absent
     kid: torch.Tensor  # (F, L), padded with n_kernels
     h: torch.Tensor  # (F, L, 3)
-    d2: torch.Tensor  # (F, L, 3) float64, +inf where invalid
+    d2: torch.Tensor  # (F, L, 3) float64, 0 on padding
     edge2: torch.Tensor  # (F, 3) float64: |e0 - e1|^2, |e0 - e2|^2, |e1 - e2|^2
+    n_kernels: int
 
 
 def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> FaceTables:
@@ -291,30 +301,46 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     kid[rr, slot] = base[rr, cc]
     h_out = torch.zeros((faces.shape[0], width, 3), dtype=h.dtype, device=h.device)
     h_out[rr, slot] = h[rr, cc]
-    d2_out = torch.full((faces.shape[0], width, 3), float("inf"), dtype=d2.dtype, device=d2.device)
+    d2_out = torch.zeros((faces.shape[0], width, 3), dtype=d2.dtype, device=d2.device)
     d2_out[rr, slot] = d2[rr, cc]
     h, d2 = h_out, d2_out
     face_rows = torch.full((field.n_faces,), -1, dtype=torch.long, device=faces.device)
     face_rows[faces] = torch.arange(faces.shape[0], device=faces.device)
-    return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2)
+    return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=n_k)
 
 
-def point_terms(
+def point_distances(
     ft: FaceTables, face_ids: torch.Tensor, bary: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(kid, h, d2)`` (P, L) for points: candidates of the point's face (padded with
-    ``n_kernels``; ``d2 = +inf`` there), their responses and exact squared distances."""
+    """``(row, kid, d2)``: each point's face row, its candidates (P, L) (padded with
+    ``n_kernels``) and their exact squared distances (``+inf`` on padding)."""
     row = ft.rows[face_ids]
     b64 = bary.to(torch.float64)
     kid = ft.kid[row]
     # elementwise (not a matmul), so equal table rows (clones) give equal bits
-    hv, bh = ft.h[row], bary.to(ft.h.dtype)
-    h = hv[:, :, 0] * bh[:, 0:1] + hv[:, :, 1] * bh[:, 1:2] + hv[:, :, 2] * bh[:, 2:3]
-    dv = ft.d2[row].nan_to_num(posinf=0.0)
+    dv = ft.d2[row]
     d2 = dv[:, :, 0] * b64[:, 0:1] + dv[:, :, 1] * b64[:, 1:2] + dv[:, :, 2] * b64[:, 2:3]
     e2 = ft.edge2[row]
     quad = b64[:, 0] * b64[:, 1] * e2[:, 0] + b64[:, 0] * b64[:, 2] * e2[:, 1]
     quad = quad + b64[:, 1] * b64[:, 2] * e2[:, 2]
     d2 = torch.clamp(d2 - quad[:, None], min=0.0)
-    d2 = torch.where(torch.isinf(ft.d2[row, :, 0]), torch.full_like(d2, float("inf")), d2)
-    return kid, h, d2
+    d2 = d2.masked_fill(kid >= ft.n_kernels, float("inf"))
+    return row, kid, d2
+
+
+def point_responses(
+    ft: FaceTables, row: torch.Tensor, pos: torch.Tensor, bary: torch.Tensor
+) -> torch.Tensor:
+    """``h_j(y) = sum_v b_v H_j(v)`` for the entries ``pos`` (P, C) of the points' face rows."""
+    hv = ft.h[row[:, None], pos]  # (P, C, 3)
+    bh = bary.to(ft.h.dtype)
+    return hv[:, :, 0] * bh[:, 0:1] + hv[:, :, 1] * bh[:, 1:2] + hv[:, :, 2] * bh[:, 2:3]
+
+
+def point_terms(
+    ft: FaceTables, face_ids: torch.Tensor, bary: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(kid, h, d2)`` (P, L) for points: every candidate of the point's face."""
+    row, kid, d2 = point_distances(ft, face_ids, bary)
+    pos = torch.arange(kid.shape[1], device=kid.device).expand_as(kid)
+    return kid, point_responses(ft, row, pos, bary), d2
