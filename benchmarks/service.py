@@ -252,6 +252,43 @@ def seed_kernelset(url: str, data_dir: Path, work: Path, kernels: int) -> tuple[
     return ks_id, n_faces, info
 
 
+def _server_pid(url: str) -> int | None:
+    """The ``hktex serve`` process listening at ``url`` (spawned_service yields only the URL)."""
+    port = url.rsplit(":", 1)[1]
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"serve" in argv and port.encode() in argv:
+            return int(entry)
+    return None
+
+
+def tree_cpu_seconds(pid: int | None) -> float:
+    """User + system CPU seconds of a process and its live descendants (from /proc)."""
+    if pid is None:
+        return float("nan")
+    stats: dict[int, tuple[int, float]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            except (OSError, IndexError):
+                continue
+            ticks = int(fields[11]) + int(fields[12])  # utime, stime
+            stats[int(entry)] = (int(fields[1]), ticks / os.sysconf("SC_CLK_TCK"))
+    tree, frontier = {pid}, [pid]
+    while frontier:
+        parent = frontier.pop()
+        kids = [p for p, (pp, _) in stats.items() if pp == parent and p not in tree]
+        tree.update(kids)
+        frontier += kids
+    return sum(stats[p][1] for p in tree if p in stats)
+
+
 def old_server_path(rev: str, work: Path) -> Path:
     """``hktex_server`` as it was at ``rev`` (``git archive`` of ``server/``), for PYTHONPATH."""
     repo = Path(__file__).resolve().parents[1]
@@ -297,10 +334,19 @@ def compare(args: argparse.Namespace, command: str) -> int:
                     }
                     for _ in range(8):
                         c.post(f"/v1/kernelsets/{ks_id}/albedo", json=body).raise_for_status()
+                pid = _server_pid(url)
+                cpu0 = tree_cpu_seconds(pid)
                 queries = asyncio.run(
                     query_load(url, ks_id, n_faces, args.clients, args.points, args.duration)
                 )
+                cpu = tree_cpu_seconds(pid) - cpu0
             queries["load_average_before"] = round(load, 2)
+            # On a shared, saturated host throughput measures the scheduler; the server's CPU
+            # use says what the code can do: cores it kept busy, points per CPU-second.
+            queries["server_cpu_s"] = round(cpu, 1)
+            queries["server_cores_busy"] = round(cpu / queries["duration_s"], 2)
+            points = queries["requests"] * queries["points_per_request"]
+            queries["points_per_server_cpu_s"] = round(points / cpu) if cpu > 0 else None
             print(f"{label}: {queries}", file=sys.stderr)
             runs[label] = queries
     old_q, new_q = runs.values()
@@ -337,6 +383,9 @@ def write_compare_md(out: Path, result: dict) -> None:
     row("requests / errors", lambda r: f"{r['requests']} / {r['errors']}")
     row("throughput", lambda r: f"{r['requests_per_s']} req/s, {r['points_per_s']:,} points/s")
     row("latency p50 / p99 / max", lambda r: f"{r['p50_ms']} / {r['p99_ms']} / {r['max_ms']} ms")
+    row("server CPU during the load", lambda r: f"{r['server_cpu_s']} s")
+    row("cores the server kept busy", lambda r: str(r["server_cores_busy"]))
+    row("points per server CPU-second", lambda r: f"{r['points_per_server_cpu_s']:,}")
     row(
         "/v1/health during the load: n / errors",
         lambda r: f"{r['health']['requests']} / {r['health']['errors']}",

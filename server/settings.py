@@ -71,6 +71,9 @@ class Settings(BaseSettings):
         None, ge=1, le=256, description="worker processes for queries and renders; default cores"
     )
     compute_threads: int = Field(1, ge=1, le=256, description="CPU threads per compute worker")
+    compute_nice: int = Field(
+        5, ge=0, le=19, description="niceness of compute workers: the API's own loop comes first"
+    )
     compute_timeout_seconds: float = Field(
         60.0, gt=0, description="run time one query or render may take before it is killed"
     )

@@ -292,3 +292,70 @@ def test_views_bombs_are_refused_with_bounded_server_memory(tmp_path) -> None:
         c.close()
     finally:
         serve.stop()
+
+
+# ---------------------------------------------------------------- the pool itself
+
+
+def _pool(tmp_path, **over):
+    from hktex_server.api.compute import ComputePool
+
+    from tests.server_support import fast_settings
+
+    settings = fast_settings(tmp_path, f"sqlite:///{tmp_path / 'p.db'}", **over)
+    pool = ComputePool(settings)
+    pool.start()
+    wait_for(lambda: pool.status()["alive"] == pool.size, 120, "the compute workers")
+    return pool
+
+
+def _wait(task, timeout: float = 60):
+    return task.future.result(timeout)
+
+
+def test_pool_runs_in_parallel_and_serves_owners_in_turn(tmp_path) -> None:
+    pool = _pool(tmp_path, compute_workers=2)
+    try:
+        t0 = time.monotonic()
+        done: dict[int, float] = {}
+
+        def submit(owner: str):
+            task = pool.submit(owner, "ping", {"seconds": 1.0})
+            task.future.add_done_callback(
+                lambda _f, k=id(task): done.setdefault(k, time.monotonic() - t0)
+            )
+            return task
+
+        alice = [submit("alice") for _ in range(4)]
+        bob = submit("bob")
+        for task in [*alice, bob]:
+            _wait(task)
+        # serial: 5 s; two workers: 3 s at most, and bob's one request is among the first two
+        assert max(done.values()) < 4.5, done
+        assert done[id(bob)] < done[id(alice[-1])] - 0.5, done
+        pids = {_wait(t) for t in [*alice, bob]}
+        assert len(pids) == 2, "both workers served"
+    finally:
+        pool.close()
+
+
+def test_pool_kills_a_cancelled_or_overdue_request(tmp_path) -> None:
+    pool = _pool(tmp_path, compute_workers=1, compute_timeout_seconds=1.0)
+    try:
+        first_pid = _wait(pool.submit("alice", "ping", {}))
+        slow = pool.submit("alice", "ping", {"seconds": 5.0})
+        with pytest.raises(ComputeError) as err:
+            _wait(slow, 30)
+        assert err.value.status_code == 503 and "time budget of 1 s" in err.value.detail
+        second_pid = _wait(pool.submit("alice", "ping", {}))
+        assert second_pid != first_pid, "the overdue request's worker was killed and replaced"
+        task = pool.submit("alice", "ping", {"seconds": 5.0})
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        task.cancel()  # what the route does when the client disconnects
+        third_pid = _wait(pool.submit("alice", "ping", {}))
+        assert time.monotonic() - t0 < 4, "the cancelled request did not hold the worker"
+        assert third_pid != second_pid
+    finally:
+        pool.close()
+    assert all(not s.alive() for s in pool.slots), "close() leaves no worker behind"

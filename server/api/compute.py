@@ -146,7 +146,13 @@ class _Slot:
         st = self.pool.settings
         proc = ctx.Process(
             target=compute_child.main,
-            args=(child, st.compute_threads, st.query_cache_size, st.compute_recycle_bytes),
+            args=(
+                child,
+                st.compute_threads,
+                st.query_cache_size,
+                st.compute_recycle_bytes,
+                st.compute_nice,
+            ),
             name=f"hktex-compute-{self.index}",
             daemon=True,
         )

@@ -21,6 +21,7 @@ import json
 import os
 import resource
 import signal
+import time
 from collections import OrderedDict
 from typing import Any
 
@@ -181,8 +182,9 @@ def handle(worker: Worker, kind: str, payload: dict[str, Any], memory: int) -> t
             return ("ok", worker.render(**payload))
         if kind == "views":
             return ("ok", check_views(**payload))
-        if kind == "ping":
-            return ("ok", b"pong")
+        if kind == "ping":  # a liveness probe; ``seconds`` (at most 5) holds the worker
+            time.sleep(min(max(float(payload.get("seconds", 0.0)), 0.0), 5.0))
+            return ("ok", str(os.getpid()).encode())
         return ("error", 400, f"unknown compute request {kind!r}")
     except RequestError as exc:
         return ("error", exc.status, exc.detail)
@@ -204,9 +206,15 @@ def handle(worker: Worker, kind: str, payload: dict[str, Any], memory: int) -> t
         _unlimit_memory()
 
 
-def main(conn: Any, threads: int, cache_size: int, recycle_bytes: int) -> None:
-    """The worker's loop until its pipe closes or it grows past ``recycle_bytes``."""
+def main(conn: Any, threads: int, cache_size: int, recycle_bytes: int, nice: int = 0) -> None:
+    """The worker's loop until its pipe closes or it grows past ``recycle_bytes``.
+
+    ``nice`` lowers the worker's CPU priority: when queries saturate the cores, the API
+    process (health checks, metadata, uploads, the event loop that answers everyone) must
+    still be scheduled first."""
     _die_with_parent()
+    if nice:
+        os.nice(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the API process's to handle
     import torch
 

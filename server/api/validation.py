@@ -53,6 +53,7 @@ PRELOAD = [
     "__main__",
     "hktex_engine.geometry.mesh",
     "torch",
+    "faiss",  # imported lazily by the KNN and by set_thread_counts: 0.8 s each time otherwise
     "hktex_engine.kernels.query",
     "hktex_server.api.compute_child",
     "hktex_server.jobs.worker_main",
