@@ -320,3 +320,20 @@ def test_dashboard_upload_fit_progress_viewer_cancel(service, browser, assets, t
     assert newest_job(browser)["step"] > 0, "it was cancelled while running, not while queued"
     browser.execute_script(f"document.querySelector('{sel}').scrollIntoView()")
     shot(browser, tmp_path / "6_cancelled.png")
+
+
+def test_without_tokens_the_page_signs_in_as_local(browser, tmp_path) -> None:
+    """The demo's and a fresh ``hktex serve``'s case: loopback, no tokens, no sign-in form."""
+    from selenium.webdriver.common.by import By
+
+    data = tmp_path / "data"
+    data.mkdir()
+    env = {"HKTEX_DATA_DIR": str(data), "HKTEX_WORKERS": "0", "HKTEX_TOKENS": ""}
+    with _serve(data, env) as url:
+        browser.get(url + "/")
+        browser.execute_script("sessionStorage.clear()")
+        browser.get(url + "/")
+        _wait(browser, "the dashboard", lambda d: d.find_element(By.ID, "app").is_displayed())
+        assert browser.find_element(By.ID, "owner").text == "local"
+        assert not browser.find_element(By.ID, "login").is_displayed()
+        shot(browser, tmp_path / "local.png")

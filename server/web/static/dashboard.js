@@ -81,6 +81,7 @@ async function signIn(token) {
   if (S.token) sessionStorage.setItem(TOKEN_KEY, S.token);
   S.owner = info.owner;
   $("owner").textContent = info.owner;
+  $("signout").hidden = !S.token; // a service without tokens has nobody to sign out
   $("service-info").textContent = `hktex ${info.version} · ${info.workers} worker slot(s) · ` +
     `queue ${info.queue.queued} queued, ${info.queue.running} running`;
   $("login").hidden = true;
