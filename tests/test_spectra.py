@@ -120,9 +120,12 @@ def test_warm_solver_matches_cold_from_a_neighbour_start(mesh):
     np.testing.assert_allclose(vals[:24], cold, rtol=1e-8, atol=1e-10)
 
 
-@pytest.mark.parametrize("kwargs", [{"solver": "warm"}, {"solver": "cold"}, {"workers": 2}])
+@pytest.mark.parametrize(
+    "kwargs", [{"solver": "warm"}, {"solver": "cold"}, {"solver": "block"}, {"workers": 2}]
+)
 def test_other_solvers_and_worker_processes_give_the_same_grid(mesh, tiny, kwargs):
     other = compute_spectra(mesh, TINY, **kwargs)
+    # the default ("auto") picks by size: 642 vertices for 16 pairs is the block side
     assert tiny.manifest["solver"]["nodes"][1]["method"] == "block"
     assert other.manifest["solver"]["nodes"][1]["method"] == kwargs.get("solver", "block")
     src = np.array([0, 200, 400])

@@ -65,10 +65,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--solver",
-        choices=("block", "cold", "warm"),
-        default="block",
-        help="block: block shift-invert Krylov-Schur per node (default); cold: ARPACK per "
-        "node; warm: block iteration from the previous node",
+        choices=("auto", "block", "cold", "warm"),
+        default="auto",
+        help="auto (default): block or cold, whichever was measured faster for the mesh "
+        "size; block: block shift-invert Krylov-Schur per node; cold: ARPACK per node; "
+        "warm: block iteration from the previous node",
     )
     p.add_argument(
         "--workers",

@@ -539,9 +539,17 @@ class RenderScene:
     # ---- rendering
 
     def render(
-        self, camera: Camera, spp: int | None = None, seed: int = 0, sensor: Any = None
+        self,
+        camera: Camera,
+        spp: int | None = None,
+        seed: int = 0,
+        sensor: Any = None,
+        cache: bool = True,
     ) -> np.ndarray:
-        """Linear RGB image (H, W, 3) float32; no gradients are tracked."""
+        """Linear RGB image (H, W, 3) float32; no gradients are tracked.
+
+        ``cache`` (default): each distinct hit is evaluated once per render (exact, see
+        :class:`_PointCache`); ``False`` evaluates every request (for measurements)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -550,7 +558,9 @@ class RenderScene:
         plugin = self.texture_plugin
         inner = plugin.albedo_fn if plugin is not None else None
         if inner is not None:
-            plugin.albedo_fn = self.last_cache = _PointCache(_without_grad(inner))
+            plain = _without_grad(inner)
+            self.last_cache = _PointCache(plain) if cache else None
+            plugin.albedo_fn = self.last_cache or plain
         try:
             with dr.suspend_grad():
                 img = mi.render(self.scene, sensor=sensor, spp=spp or self.settings.spp, seed=seed)

@@ -38,13 +38,14 @@ from hktex_engine.spectra.alignment import align_basis
 from hktex_engine.spectra.eigensolver import (
     SolveInfo,
     eigs_block_lowest,
+    eigs_node,
     eigs_sliced,
     eigs_warm,
     estimate_lambda_k,
 )
 
 #: Per-node solvers of the independent-node path (``solver`` of :func:`compute_spectra`).
-_NODE_SOLVERS = {"block": eigs_block_lowest, "cold": eigs_sliced}
+_NODE_SOLVERS = {"auto": eigs_node, "block": eigs_block_lowest, "cold": eigs_sliced}
 
 
 @dataclass
@@ -193,7 +194,7 @@ _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _solve_timed(
-    L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float, solver: str = "block"
+    L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float, solver: str = "auto"
 ) -> tuple:
     """One independent node solve, timed (runs in a worker process when ``workers > 1``)."""
     t0 = time.perf_counter()
@@ -206,7 +207,7 @@ def _cold_solutions(
     mass: np.ndarray,
     k: int,
     workers: int,
-    solver: str = "block",
+    solver: str = "auto",
 ) -> Iterator[tuple]:
     """Independent solves of ``operators`` in order; with ``workers > 1`` in a process pool.
 
@@ -284,7 +285,7 @@ def compute_spectra(
     config: SpectralConfig | None = None,
     progress: Progress | None = None,
     out_dir: str | Path | None = None,
-    solver: Literal["block", "cold", "warm"] = "block",
+    solver: Literal["auto", "block", "cold", "warm"] = "auto",
     workers: int = 1,
 ) -> Spectra:
     """Compute the aligned ALBO grid and the isotropic spectrum of ``mesh``.
@@ -294,10 +295,11 @@ def compute_spectra(
     published atomically, and the memory-mapped result is returned: the way to go for big
     meshes, whose grid (n x 49 x 256 floats) can exceed the memory one wants to use.
 
-    ``solver``: ``block`` (default) solves each distinct operator independently by a block
+    ``solver``: ``block`` solves each distinct operator independently by a block
     shift-invert Krylov-Schur iteration (:func:`eigs_block_lowest`; ARPACK's stopping rule,
-    matrix-matrix work); ``cold`` by ARPACK shift-invert (:func:`eigs_sliced`); with either,
-    nodes are independent, so ``workers`` processes can share them. ``warm`` runs a shift-invert
+    matrix-matrix work); ``cold`` by ARPACK shift-invert (:func:`eigs_sliced`); ``auto``
+    (default) picks the one measured faster for the mesh size (:func:`eigs_node`). With any
+    of them nodes are independent, so ``workers`` processes can share them. ``warm`` runs a shift-invert
     block iteration from the previous node's basis (sequential; measured slower at equal
     accuracy, see docs/spectra.md). Nodes whose operator equals an earlier node's
     (``theta = pi`` is ``theta = 0``; ``eta = 0`` is isotropic) are never solved twice.
@@ -305,7 +307,7 @@ def compute_spectra(
     """
     config = config or SpectralConfig()
     progress = progress or NullProgress()
-    if solver not in ("block", "cold", "warm"):
+    if solver not in ("auto", "block", "cold", "warm"):
         raise ValueError(f"unknown solver {solver!r}")
     t_start = time.perf_counter()
     V = np.asarray(mesh.vertices, dtype=np.float64)
@@ -343,7 +345,7 @@ def compute_spectra(
         p = _work_size(config, n) if solver == "warm" else K
         k_first = max(p, need)
         weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
-        iso_solve = eigs_block_lowest if solver == "block" else eigs_sliced
+        iso_solve = _NODE_SOLVERS.get(solver, eigs_sliced)
         iso_vals, iso_vecs, _ = iso_solve(cotangent_stiffness(V, F), mass, k_first, weyl)
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
