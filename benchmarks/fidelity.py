@@ -218,7 +218,17 @@ def main() -> int:
             k = int(over.pop("spectra_k", args.k))
             spectra = cache.get_or_compute(mesh, SpectralConfig(angles=args.angles, k=k))
             row = run_one(
-                name, mesh, spectra, label, over, curve, eval_f, eval_b, target, args.pictures
+                name,
+                mesh,
+                spectra,
+                label,
+                over,
+                curve,
+                eval_f,
+                eval_b,
+                target,
+                args.pictures,
+                args.save,
             )
             row["command"] = command
             row["machine"] = machine_line(machine_info())
