@@ -449,7 +449,7 @@ def run_demo(args: argparse.Namespace) -> dict:
                 notes.append(f"no kernel-set render: {exc}")
                 _say(args, notes[-1])
         with timer.stage("bake layers"):
-            bake = _bake_layers(url, ks_id, out, notes)
+            bake = _bake_layers(client, ks_id, out, notes)
         with timer.stage("render UV reference"):
             for name, tex, what in (
                 ("render_uv_texture.png", texture, "UV-texture"),
@@ -502,26 +502,18 @@ def _serve_until_interrupted(args: argparse.Namespace, url: str, report: Path) -
         _say(args, "stopping the service")
 
 
-def _bake_layers(url: str, ks_id: str, out: Path, notes: list[str]) -> dict | None:
-    """The viewer's bake through the API (GET /v1/kernelsets/{id}/bake and its layers), saved
-    as ``uv_kernel.png``, ``uv_original.png`` and ``uv_error.png`` for the report."""
-    import httpx
+def _bake_layers(client: Any, ks_id: str, out: Path, notes: list[str]) -> dict | None:
+    """The viewer's bake through the API (what the dashboard shows), saved as ``demo.glb``,
+    ``uv_kernel.png``, ``uv_original.png`` and ``uv_error.png`` for the report."""
+    from hktex_client import HKTexAPIError
 
-    base = f"{url}/v1/kernelsets/{ks_id}"
     try:
-        with httpx.Client(timeout=600) as http:
-            info = http.get(f"{base}/bake", params={"resolution": 512})
-            info.raise_for_status()
-            bake = info.json()
-            for layer in bake["layers"]:
-                r = http.get(f"{base}/textures/{layer}", params={"resolution": 512})
-                r.raise_for_status()
-                (out / f"uv_{layer}.png").write_bytes(r.content)
-            glb = http.get(f"{base}/glb", params={"resolution": 512})
-            glb.raise_for_status()
-            (out / "demo.glb").write_bytes(glb.content)
-        return bake
-    except httpx.HTTPError as exc:
+        bake = client.bake(ks_id, resolution=512)
+        for layer in bake.layers:
+            (out / f"uv_{layer}.png").write_bytes(client.bake_layer(ks_id, layer, 512))
+        client.download_glb(ks_id, out / "demo.glb", resolution=512)
+        return bake.model_dump()
+    except HKTexAPIError as exc:
         notes.append(f"no baked layers: {exc}")
         return None
 

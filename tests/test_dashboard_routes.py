@@ -149,3 +149,20 @@ def test_lists_are_owner_scoped_and_bake_serves_viewer_layers(live, tmp_path) ->
         assert (
             alice.get(f"/v1/kernelsets/{ks_id}/glb", params={"resolution": 333}).status_code == 422
         )
+
+
+def test_client_reaches_the_dashboard_routes(live, tmp_path) -> None:
+    from hktex_client import BakeInfo, Client, NotFound
+    from hktex_server.api.assets import BakeInfo as ServerBakeInfo
+
+    assert set(BakeInfo.model_fields) == set(ServerBakeInfo.model_fields)
+    with Client(live.url, token="tok-alice", timeout=120) as alice:
+        ks_id = alice.list_kernelsets()[0].id  # the previous test's
+        assert alice.list_spectra()[0].state == "ready"
+        info = alice.bake(ks_id, resolution=256)
+        assert info.layers == ["kernel", "original", "error"] and info.resolution == 256
+        glb = alice.download_glb(ks_id, tmp_path / "k.glb", resolution=256)
+        assert glb.read_bytes()[:4] == b"glTF"
+        assert alice.bake_layer(ks_id, "error", resolution=256)[:4] == b"\x89PNG"
+    with Client(live.url, token="tok-bob") as bob, pytest.raises(NotFound):
+        bob.bake(ks_id)

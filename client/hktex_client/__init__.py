@@ -21,6 +21,7 @@ from hktex_client.errors import (
 )
 from hktex_client.models import (
     FINAL_STATES,
+    BakeInfo,
     Health,
     Info,
     JobProgress,
@@ -41,6 +42,7 @@ __all__ = [
     "NPY_MEDIA_TYPE",
     "AsyncClient",
     "BadRequest",
+    "BakeInfo",
     "Client",
     "Conflict",
     "HKTexAPIError",

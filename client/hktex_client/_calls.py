@@ -16,6 +16,7 @@ import numpy as np
 
 from hktex_client.errors import error_for
 from hktex_client.models import (
+    BakeInfo,
     Health,
     Info,
     JobRecord,
@@ -203,6 +204,45 @@ def delete_kernelset(kernelset_id: str) -> Call[None]:
 def download_kernelset(kernelset_id: str, dest: Path) -> Call[Path]:
     return Call(
         "GET", f"{API}/kernelsets/{kernelset_id}/file", lambda r: dest, stream_to=Path(dest)
+    )
+
+
+def list_kernelsets(limit: int | None = None) -> Call[list[KernelSetRecord]]:
+    params = _drop_none({"limit": limit})
+    return Call("GET", f"{API}/kernelsets", _model_list(KernelSetRecord), params=params or None)
+
+
+def list_spectra(limit: int | None = None) -> Call[list[SpectraRecord]]:
+    params = _drop_none({"limit": limit})
+    return Call("GET", f"{API}/spectra", _model_list(SpectraRecord), params=params or None)
+
+
+def bake(kernelset_id: str, resolution: int = 512) -> Call[BakeInfo]:
+    return Call(
+        "GET",
+        f"{API}/kernelsets/{kernelset_id}/bake",
+        _model(BakeInfo),
+        params={"resolution": resolution},
+    )
+
+
+def download_glb(kernelset_id: str, dest: Path, resolution: int = 512) -> Call[Path]:
+    return Call(
+        "GET",
+        f"{API}/kernelsets/{kernelset_id}/glb",
+        lambda r: dest,
+        params={"resolution": resolution},
+        stream_to=Path(dest),
+    )
+
+
+def bake_layer(kernelset_id: str, layer: str, resolution: int = 512) -> Call[bytes]:
+    return Call(
+        "GET",
+        f"{API}/kernelsets/{kernelset_id}/textures/{layer}",
+        lambda r: r.content,
+        params={"resolution": resolution},
+        headers={"Accept": "image/png"},
     )
 
 

@@ -22,6 +22,7 @@ from hktex_client import _calls as calls
 from hktex_client.errors import JobFailed, ServerError, WaitTimeout
 from hktex_client.models import (
     FINAL_STATES,
+    BakeInfo,
     Health,
     Info,
     JobRecord,
@@ -309,6 +310,26 @@ class Client:
         """Stream the ``.hkt`` file to ``path`` (written atomically)."""
         return self._run(calls.download_kernelset(kernelset_id, Path(path)))
 
+    def list_kernelsets(self, limit: int | None = None) -> list[KernelSetRecord]:
+        """This owner's kernel sets, newest first."""
+        return self._run(calls.list_kernelsets(limit))
+
+    def list_spectra(self, limit: int | None = None) -> list[SpectraRecord]:
+        """Spectra of the geometry this owner uploaded, newest first."""
+        return self._run(calls.list_spectra(limit))
+
+    def bake(self, kernelset_id: str, resolution: int = 512) -> BakeInfo:
+        """Bake the kernel set for viewing (256, 512 or 1024 texels; cached by the service)."""
+        return self._run(calls.bake(kernelset_id, resolution))
+
+    def download_glb(self, kernelset_id: str, path: str | Path, resolution: int = 512) -> Path:
+        """The kernel set baked into a textured GLB, streamed to ``path``."""
+        return self._run(calls.download_glb(kernelset_id, Path(path), resolution))
+
+    def bake_layer(self, kernelset_id: str, layer: str, resolution: int = 512) -> bytes:
+        """One UV-space layer of the bake as PNG: ``kernel``, ``original`` or ``error``."""
+        return self._run(calls.bake_layer(kernelset_id, layer, resolution))
+
     def albedo(
         self,
         kernelset_id: str,
@@ -541,6 +562,23 @@ class AsyncClient:
 
     async def download_kernelset(self, kernelset_id: str, path: str | Path) -> Path:
         return await self._run(calls.download_kernelset(kernelset_id, Path(path)))
+
+    async def list_kernelsets(self, limit: int | None = None) -> list[KernelSetRecord]:
+        return await self._run(calls.list_kernelsets(limit))
+
+    async def list_spectra(self, limit: int | None = None) -> list[SpectraRecord]:
+        return await self._run(calls.list_spectra(limit))
+
+    async def bake(self, kernelset_id: str, resolution: int = 512) -> BakeInfo:
+        return await self._run(calls.bake(kernelset_id, resolution))
+
+    async def download_glb(
+        self, kernelset_id: str, path: str | Path, resolution: int = 512
+    ) -> Path:
+        return await self._run(calls.download_glb(kernelset_id, Path(path), resolution))
+
+    async def bake_layer(self, kernelset_id: str, layer: str, resolution: int = 512) -> bytes:
+        return await self._run(calls.bake_layer(kernelset_id, layer, resolution))
 
     async def albedo(
         self,

@@ -122,6 +122,20 @@ class KernelSetRecord(_Record):
     created_at: float | None = None
 
 
+class BakeInfo(_Record):
+    """What a viewer bake of a kernel set produced (``GET /v1/kernelsets/{id}/bake``)."""
+
+    kernelset_id: str
+    resolution: int
+    atlas: str = "mesh"
+    coverage: float = 0.0
+    layers: list[str] = Field(default_factory=list)
+    error_scale: float | None = None
+    error_rms: float | None = None
+    glb_bytes: int = 0
+    seconds: float = 0.0
+
+
 class ViewsRecord(_Record):
     """An uploaded multi-view dataset (images + cameras) for ``fit_multiview``."""
 
