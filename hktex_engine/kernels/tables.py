@@ -91,8 +91,6 @@ def build_tables(
     ``D_v`` needs only an upper bound: the largest exact distance to any ``K_s`` centres, so
     the ``K_s`` found by ``search`` (a :class:`~hktex_engine.kernels.knn.CandidateSearch`,
     approximate ranking is fine) serve; without one, a ``topk`` over the distance rows.
-    The lists come from one GEMM per chunk of vertices in the compute dtype, the test widened
-    by its round-off; the kept pairs' distances are then computed directly in float64.
     """
     n_k = centres.shape[0]
     dev = centres.device
@@ -100,13 +98,16 @@ def build_tables(
     c64 = centres.to(torch.float64)
     c_sq = (c64 * c64).sum(dim=1)
     slack = 1e-12 * (float(c_sq.max()) + float((emb * emb).sum(dim=1).max()))
-    cw = centres.to(field.dtype)
-    cw_sq = (cw * cw).sum(dim=1)
-    # the list test runs on the GEMM's distances in the compute dtype, widened by their
-    # round-off (|a|^2 + |c|^2 - 2 a.c: a few ulps of |a|^2 + max |c|^2); the kept pairs'
-    # distances are then computed exactly, elementwise, below
-    eps = float(torch.finfo(field.dtype).eps)
-    per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * cw.element_size()))
+    # Distances: one float64 GEMM per chunk of vertices, |a|^2 + |c|^2 - 2 a.c (round-off
+    # ~1e-16 of |a|^2 + |c|^2, covered by the slack), over the distinct centres only, so that
+    # clones (equal centres) get bit-equal distances, as the tie rule needs (a GEMM's rounding
+    # can differ between equal columns).
+    uniq, inverse = torch.unique(c64, dim=0, return_inverse=True)  # (sorted rows)
+    has_clones = uniq.shape[0] < n_k
+    if not has_clones:
+        uniq = c64
+    u_sq = (uniq * uniq).sum(dim=1)
+    per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * 8))
     if search is not None:
         near = search.search(field.embedding[verts].to(centres.dtype), k_s)  # (V, k_s)
         reach_v = torch.empty(verts.shape[0], dtype=torch.float64, device=dev)
@@ -118,28 +119,22 @@ def build_tables(
     r_idx, c_idx, vals = [], [], []
     for start in range(0, verts.shape[0], per_row):
         v = verts[start : start + per_row]
-        e = field.embedding[v]
-        e_sq = (e * e).sum(dim=1)
-        d2 = torch.addmm(cw_sq[None, :], e, cw.T, beta=1.0, alpha=-2.0)
-        d2 += e_sq[:, None]
-        err = 64.0 * eps * (e_sq.to(torch.float64) + float(cw_sq.max()))
+        e = emb[v]
+        d2 = torch.addmm(u_sq[None, :], e, uniq.T, beta=1.0, alpha=-2.0)
+        d2 += (e * e).sum(dim=1)[:, None]
+        if has_clones:
+            d2 = d2[:, inverse]
         if search is not None:
             kth = reach_v[start : start + per_row]
         else:
-            top = torch.topk(d2, k_s, dim=1, largest=False).values[:, -1].to(torch.float64)
-            kth = torch.sqrt((top + err).clamp(min=0))
+            kth = torch.sqrt(torch.topk(d2, k_s, dim=1, largest=False).values[:, -1].clamp(min=0))
         reach = kth + 2.0 * radius[v]
-        bound = (reach * reach + slack) * (1 + 1e-6) + err
-        rr, cc = torch.nonzero(d2 <= bound.to(d2.dtype)[:, None], as_tuple=True)
+        bound = (reach * reach + slack) * (1 + 1e-9)
+        rr, cc = torch.nonzero(d2 <= bound[:, None], as_tuple=True)
         r_idx.append(rr + start)
         c_idx.append(cc)
+        vals.append(d2[rr, cc].clamp(min=0.0))
     rr, cc = torch.cat(r_idx), torch.cat(c_idx)  # row-major: kernel ids ascending per row
-    # The kept pairs' distances directly, elementwise (a GEMM's rounding can differ between
-    # equal columns, which would split clones that the tie rule must see as equal).
-    step = max(1, DISTANCE_CHUNK_BYTES // max(1, emb.shape[1] * 8))
-    for start in range(0, rr.shape[0], step):
-        diff = emb[verts[rr[start : start + step]]] - c64[cc[start : start + step]]
-        vals.append((diff * diff).sum(dim=1))
     counts = torch.bincount(rr, minlength=verts.shape[0])
     width = int(counts.max()) if counts.numel() else 0
     offsets = torch.cumsum(counts, 0) - counts
