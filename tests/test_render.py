@@ -253,6 +253,8 @@ def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
     cam = R.orbit_camera(V, 20, 10)
     cached = scene.render(cam, seed=3)
     evaluated = sum(counts)
+    # one albedo call on the recorded distinct points; the second pass asked for no other
+    assert len(counts) == 1
     assert scene.last_cache.evaluated == evaluated < scene.last_cache.asked
 
     class NoCache:  # the same protocol, evaluating every request

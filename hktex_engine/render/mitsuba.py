@@ -548,8 +548,13 @@ class RenderScene:
     ) -> np.ndarray:
         """Linear RGB image (H, W, 3) float32; no gradients are tracked.
 
-        ``cache`` (default): each distinct hit is evaluated once per render (exact, see
-        :class:`_PointCache`); ``False`` evaluates every request (for measurements)."""
+        ``cache`` (default) renders in two passes with the same seed: the first, with a
+        placeholder albedo, only records where the texture is asked (with a diffuse BSDF
+        and no Russian roulette the paths do not depend on the albedo values); the albedo
+        function then runs **once**, on the distinct recorded points; the second pass
+        renders with those exact values (:class:`_PointCache`, bit-exact keys; a point the
+        second pass asks that the first did not is evaluated on the spot, so the image is
+        exact either way). ``False`` evaluates every request as it comes (one pass)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -557,13 +562,23 @@ class RenderScene:
         sensor = sensor if sensor is not None else self.sensor(camera)
         plugin = self.texture_plugin
         inner = plugin.albedo_fn if plugin is not None else None
-        if inner is not None:
-            plain = _without_grad(inner)
-            self.last_cache = _PointCache(plain) if cache else None
-            plugin.albedo_fn = self.last_cache or plain
+        spp = spp or self.settings.spp
+        self.last_cache = None
         try:
             with dr.suspend_grad():
-                img = mi.render(self.scene, sensor=sensor, spp=spp or self.settings.spp, seed=seed)
+                if inner is not None and cache:
+                    recorder = _HitRecorder()
+                    plugin.albedo_fn = recorder
+                    mi.render(self.scene, sensor=sensor, spp=spp, seed=seed)
+                    self.last_cache = _PointCache(_without_grad(inner))
+                    face_ids, bary = recorder.points()
+                    if face_ids.numel():
+                        self.last_cache(face_ids, bary)  # one call: every distinct point
+                    self.last_cache.asked = 0  # count the second pass's requests only
+                    plugin.albedo_fn = self.last_cache
+                elif inner is not None:
+                    plugin.albedo_fn = _without_grad(inner)
+                img = mi.render(self.scene, sensor=sensor, spp=spp, seed=seed)
         finally:
             if inner is not None:
                 plugin.albedo_fn = inner
@@ -648,6 +663,29 @@ def _point_keys(face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
     b = bary.detach()[:, 1:].contiguous()
     bits = b.view(torch.int32) if b.dtype == torch.float32 else b.view(torch.int64)
     return torch.cat([face_ids.long()[:, None], bits.long()], dim=1)
+
+
+class _HitRecorder:
+    """A placeholder albedo (0.5 grey) that records every point it is asked about."""
+
+    def __init__(self) -> None:
+        self.faces: list[torch.Tensor] = []
+        self.barys: list[torch.Tensor] = []
+
+    def __call__(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        self.faces.append(face_ids.detach().clone())
+        self.barys.append(bary.detach().clone())
+        return torch.full((face_ids.shape[0], 3), 0.5, dtype=bary.dtype, device=bary.device)
+
+    def points(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The distinct recorded points (face ids, barycentrics), bit-exact."""
+        if not self.faces:
+            return torch.zeros(0, dtype=torch.long), torch.zeros((0, 3))
+        f, b = torch.cat(self.faces), torch.cat(self.barys)
+        _, inv = torch.unique(_point_keys(f, b), dim=0, return_inverse=True)
+        first = torch.full((int(inv.max()) + 1,), len(f), dtype=torch.long, device=f.device)
+        first.scatter_reduce_(0, inv, torch.arange(len(f), device=f.device), "amin")
+        return f[first], b[first]
 
 
 class _PointCache:
