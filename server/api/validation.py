@@ -78,16 +78,43 @@ def context() -> Any:
 _context = context
 
 
+_READY = threading.Event()
+_WARMING = threading.Lock()
+
+
+def _noop() -> None:
+    """A child that does nothing: its start proves the forkserver has finished preloading."""
+
+
 def warm() -> None:
-    """Start the forkserver now (a background thread at service start), so the first upload
-    does not pay its ~1.2 s start. Failures only mean the first upload starts it."""
+    """Start the forkserver now (a background thread at service start) and fork one empty
+    child, so the first upload, compute worker or warm job does not pay its start (the
+    preloads: several seconds on a loaded host). Failures only mean the first user starts it."""
+    if not _WARMING.acquire(blocking=False):
+        return  # another thread is already warming it
     try:
-        _context()
+        ctx = context()
         from multiprocessing import forkserver
 
         forkserver.ensure_running()
-    except Exception:  # noqa: BLE001 - best effort; validate_mesh reports real failures
+        child = ctx.Process(target=_noop, daemon=True, name="hktex-forkserver-probe")
+        child.start()
+        child.join(300)
+        _READY.set()
+    except Exception:  # noqa: BLE001 - best effort; the real users report real failures
         pass
+    finally:
+        _WARMING.release()
+
+
+def ready() -> bool:
+    """Whether the forkserver has preloaded (a fork from it now costs milliseconds)."""
+    return _READY.is_set()
+
+
+def warm_in_background() -> None:
+    if not _READY.is_set():
+        threading.Thread(target=warm, name="hktex-forkserver-warm", daemon=True).start()
 
 
 def _child(conn: Any, path: str, texture: str | None, max_vertices: int, file_type: str | None):

@@ -79,6 +79,10 @@ class Supervisor:
 
     def run(self, stop: threading.Event) -> None:
         log.info("supervisor %s: %d slot(s) on %s", self.name, self.slots, self.devices)
+        if self.settings.warm_jobs:
+            from hktex_server.api import validation
+
+            validation.warm_in_background()
         while not stop.is_set():
             try:
                 self.tick()
@@ -141,11 +145,18 @@ class Supervisor:
         cmd = [sys.executable, "-m", "hktex_server.jobs.worker_main", claim.job_id]
         log_path = self.log_dir / f"{claim.job_id}.log"
         log_file = open(log_path, "ab")  # noqa: SIM115
-        mode = "warm" if self.settings.warm_jobs else "cold"
+        from hktex_server.api import validation
+
+        # Warm only once the forkserver has preloaded: the first job after a start must not
+        # wait for the preloads (longer than a cold start of a light task); it goes cold.
+        warm = self.settings.warm_jobs and validation.ready()
+        if self.settings.warm_jobs and not warm:
+            validation.warm_in_background()
+        mode = "warm" if warm else "cold"
         log_file.write(f"--- {time.ctime()} {self.name} device={claim.device} {mode}\n".encode())
         log_file.flush()
         try:
-            if self.settings.warm_jobs:
+            if warm:
                 proc = _fork_job(claim.job_id, env, log_path)
             else:
                 proc = subprocess.Popen(
