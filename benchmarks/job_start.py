@@ -34,7 +34,8 @@ def one_mode(warm: bool, jobs: int, work: Path) -> dict:
     env = {"HKTEX_WARM_JOBS": "1" if warm else "0", "HKTEX_TOKENS": "", "OMP_NUM_THREADS": "1"}
     latencies, runs = [], []
     with spawned_service(work / f"data-{int(warm)}", 1, env) as url:
-        time.sleep(5.0)  # the forkserver preloads in the background at start
+        # the forkserver preloads in the background at start; until it is ready jobs go cold
+        time.sleep(20.0)
         with httpx.Client(base_url=url, timeout=60) as c:
             mesh = c.post("/v1/meshes", files={"mesh": (obj.name, obj.read_bytes())}).json()
             for i in range(jobs):
