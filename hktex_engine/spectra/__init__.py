@@ -7,7 +7,13 @@ differentiable interpolation at surface points.
 """
 
 from hktex_engine.spectra.alignment import align_basis
-from hktex_engine.spectra.eigensolver import eigs_cold, eigs_sliced, eigs_warm
+from hktex_engine.spectra.eigensolver import (
+    eigs_block,
+    eigs_cold,
+    eigs_node,
+    eigs_sliced,
+    eigs_warm,
+)
 from hktex_engine.spectra.grid import (
     Spectra,
     SpectraCache,
@@ -23,7 +29,9 @@ __all__ = [
     "SpectralField",
     "align_basis",
     "compute_spectra",
+    "eigs_block",
     "eigs_cold",
+    "eigs_node",
     "eigs_sliced",
     "eigs_warm",
     "load_spectra",

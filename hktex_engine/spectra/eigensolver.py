@@ -1,7 +1,11 @@
 """Generalised sparse eigenproblems ``L phi = lambda M phi`` with a lumped (diagonal) M.
 
-Two solvers (ALGORITHM.md section 2; decision in docs/spectra.md):
+Solvers (ALGORITHM.md section 2; decisions in docs/spectra.md):
 
+* :func:`eigs_node` (the per-node default): :func:`eigs_block_lowest` on big meshes,
+  :func:`eigs_sliced` (ARPACK, two slices) on small ones, as measured.
+* :func:`eigs_block`: block shift-invert Krylov-Schur, ARPACK's problem and stopping rule
+  organised as matrix-matrix work (multi-right-hand-side solves, GEMM Gram-Schmidt).
 * :func:`eigs_cold`: ARPACK shift-invert through ``scipy.sparse.linalg.eigsh``; exact to
   machine precision, no start needed; used for the first basis and as the naive reference.
 * :func:`eigs_warm`: block shift-invert subspace iteration with Rayleigh-Ritz in the M inner
