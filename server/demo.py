@@ -521,16 +521,18 @@ def _bake_layers(client: Any, ks_id: str, out: Path, notes: list[str]) -> dict |
 
 
 def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None:
-    """The fit's loss against step (log scale) as a 720x400 PNG, drawn with Pillow."""
-    from PIL import Image, ImageDraw
+    """The fit's loss against step (log scale) as a 720x400 PNG, drawn with Pillow: the raw
+    per-step loss thin and light (it is a stochastic estimate), a running mean over it."""
+    from PIL import Image, ImageDraw, ImageFont
 
     path.unlink(missing_ok=True)
     pts = [(s, v) for s, v in history if v > 0]
     if len(pts) < 2:
         return None
-    w, h, left, right, top, bottom = 720, 400, 70, 20, 30, 50
+    w, h, left, right, top, bottom = 720, 400, 80, 20, 40, 50
     img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
+    font = ImageFont.load_default(size=15)
     steps = np.array([p[0] for p in pts], float)
     logs = np.log10([p[1] for p in pts])
     x0, x1 = steps.min(), max(steps.max(), steps.min() + 1)
@@ -538,14 +540,23 @@ def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None
     if y1 - y0 < 1e-9:
         y0, y1 = y0 - 0.5, y1 + 0.5
     xs = left + (steps - x0) / (x1 - x0) * (w - left - right)
-    ys = h - bottom - (logs - y0) / (y1 - y0) * (h - top - bottom)
+
+    def ys(values: np.ndarray) -> list[float]:
+        return (h - bottom - (values - y0) / (y1 - y0) * (h - top - bottom)).tolist()
+
+    window = max(1, len(logs) // 15)
+    mean = np.convolve(logs, np.ones(window) / window, mode="valid")
     d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill=(150, 160, 170))
-    d.line(list(zip(xs.tolist(), ys.tolist(), strict=True)), fill=(194, 65, 12), width=3)
-    d.text((left, h - bottom + 8), f"step {int(x0)}", fill=(60, 60, 60))
-    d.text((w - right - 90, h - bottom + 8), f"step {int(x1)}", fill=(60, 60, 60))
-    d.text((left - 60, top - 5), f"{10**y1:.3g}", fill=(60, 60, 60))
-    d.text((left - 60, h - bottom - 10), f"{10**y0:.3g}", fill=(60, 60, 60))
-    d.text((left + 10, 8), "training loss (log scale) against step", fill=(30, 30, 30))
+    d.line(list(zip(xs.tolist(), ys(logs), strict=True)), fill=(246, 190, 160), width=1)
+    mx = xs[window - 1 :].tolist()
+    d.line(list(zip(mx, ys(mean), strict=True)), fill=(194, 65, 12), width=3)
+    grey = (60, 60, 60)
+    d.text((left, h - bottom + 10), f"step {int(x0)}", fill=grey, font=font)
+    d.text((w - right, h - bottom + 10), f"step {int(x1)}", fill=grey, font=font, anchor="ra")
+    d.text((left - 8, top), f"{10**y1:.3g}", fill=grey, font=font, anchor="ra")
+    d.text((left - 8, h - bottom), f"{10**y0:.3g}", fill=grey, font=font, anchor="rd")
+    title = f"training loss (log scale); thick: running mean of {window}"
+    d.text((left, 12), title, fill=(30, 30, 30), font=font)
     img.save(path)
     return path
 
