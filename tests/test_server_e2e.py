@@ -71,7 +71,9 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
         )
         assert done["state"] == "succeeded", done["error"]
         assert done["progress"]["step"] == done["progress"]["total"] > 0
-        assert not (settings.data_dir / "checkpoints" / job["id"]).exists()  # cleaned up
+        # cleaned up by the worker just after it writes the final state (so: soon, not before)
+        checkpoints = settings.data_dir / "checkpoints" / job["id"]
+        wait_for(lambda: not checkpoints.exists(), 30, "the checkpoints to be removed")
         spectra = c.get(f"/v1/spectra/{done['spectra_id']}").json()
         assert spectra["state"] == "ready" and spectra["summary"]["k"] == SPECTRA["k"]
         # a second request for the same spectra is answered at once
