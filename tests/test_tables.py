@@ -102,3 +102,21 @@ def test_tables_follow_centre_moves(spectra3, dense_points):
         fresh = make_model(field, kp2, CONFIG)
         ref = fresh.albedo_bruteforce(f, b, exact_search=True)
     np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-12)
+
+
+def test_whole_mesh_tables_equal_the_per_point_path(spectra3, dense_points, monkeypatch):
+    """prepare_tables (vertex and face tables of the whole mesh) against the KNN path."""
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float64)
+    model = make_model(field, make_params(spectra3, 300, seed=16), CONFIG)
+    f, b = dense_points
+    with torch.no_grad():
+        monkeypatch.setattr(kernels_mod, "TABLE_PATH", "never")
+        ref, aux_ref = model.albedo(f, b, return_aux=True)
+        monkeypatch.setattr(kernels_mod, "TABLE_PATH", "auto")
+        model.prepare_tables()
+        assert model._ftables is not None and model._ftables.kid.shape[0] == field.n_faces
+        got, aux = model.albedo(f[:7], b[:7], return_aux=True)  # sparse: tables still used
+        np.testing.assert_allclose(got.numpy(), ref[:7].numpy(), atol=1e-12)
+        got, aux = model.albedo(f, b, return_aux=True)
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-12)
+    assert torch.equal(aux["indices"], aux_ref["indices"])

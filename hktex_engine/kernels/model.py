@@ -32,7 +32,9 @@ from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels.knn import CandidateSearch
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
 from hktex_engine.kernels.tables import (
+    FaceTables,
     VertexTables,
+    all_face_tables,
     build_tables,
     face_tables,
     point_distances,
@@ -233,6 +235,7 @@ class HeatKernelModel(nn.Module):
         self._vtables: VertexTables | None = None
         self._vtables_key: tuple | None = None
         self._vtables_full = False
+        self._ftables: FaceTables | None = None
         self._radius: torch.Tensor | None = None
 
     # ----------------------------------------------------------------- construction
@@ -425,6 +428,10 @@ class HeatKernelModel(nn.Module):
             return None
         self._vtables = self._build_tables(all_v)
         self._vtables_key, self._vtables_full = key, True
+        # and every face's list, when they fit beside the vertex tables
+        room = TABLES_MAX_BYTES - self._vtables.nbytes
+        k_s = min(self.config.k_search, len(self))
+        self._ftables = all_face_tables(self.field, self._vtables, k_s, room)
         return self._vtables
 
     def _build_tables(self, verts: torch.Tensor) -> VertexTables:
@@ -457,14 +464,18 @@ class HeatKernelModel(nn.Module):
         tables = self._build_tables(verts)
         if not (self._vtables_full and self._vtables_key == key):
             self._vtables, self._vtables_key, self._vtables_full = tables, key, False
+            self._ftables = None
         return tables
 
     def _blend_tables(self, tables, face_ids, bary, return_aux):
         """No-grad albedo from vertex tables (``kernels.tables``): exact ``K_s`` cut and
         ``K_c`` choice by the tie rule on each point's face candidates."""
         n_k = len(self)
-        faces = torch.unique(face_ids)
-        ft = face_tables(self.field, tables, faces, min(self.config.k_search, n_k))
+        if tables is self._vtables and self._vtables_full and self._ftables is not None:
+            ft = self._ftables  # every face's list, built with the whole-mesh tables
+        else:
+            faces = torch.unique(face_ids)
+            ft = face_tables(self.field, tables, faces, min(self.config.k_search, n_k))
         row, kid, d2 = point_distances(ft, face_ids, bary)
         # exact K_s cut first (distance, then kernel id; padding gets distinct ids above every
         # kernel's, the rule needs unique ids per row), then responses of those only

@@ -26,7 +26,13 @@ BARY_TOL = 1e-4
 
 
 class AlbedoQuery:
-    """Albedo at surface points or 3-D points for one kernel set on its spectra."""
+    """Albedo at surface points or 3-D points for one kernel set on its spectra.
+
+    ``tables``: True builds the whole-mesh candidate tables (``kernels.tables``) with the
+    query state, for callers that know a dense workload is coming; None (default) builds them
+    on the first call with at least one point per mesh vertex; False never builds whole-mesh
+    tables (a chunk dense enough may still use its own).
+    """
 
     def __init__(
         self,
@@ -36,6 +42,7 @@ class AlbedoQuery:
         chunk_points: int | None = None,
         memory_budget: int = DEFAULT_MEMORY_BUDGET,
         knn_backend: str = "auto",
+        tables: bool | None = None,
     ) -> None:
         if kernelset.mesh_hash and kernelset.mesh_hash != spectra.mesh_hash:
             raise KernelSetError("the kernel set was fitted on another mesh than these spectra")
@@ -45,8 +52,13 @@ class AlbedoQuery:
         self.field = SpectralField(spectra, device=device)
         self.model = HeatKernelModel.from_kernelset(kernelset, self.field, knn_backend)
         self.model.requires_grad_(False)
+        self.tables = tables
         with torch.no_grad():
             self.model.refresh()
+            if tables:
+                # dense workloads known in advance: the whole-mesh candidate tables are part
+                # of the query state (kernels.tables)
+                self.model.prepare_tables()
         if chunk_points is None:
             chunk_points = max(1, memory_budget // self.bytes_per_point())
         if chunk_points < 1:
@@ -83,7 +95,8 @@ class AlbedoQuery:
         face_ids, bary = face_ids[order], bary[order]
         out = np.empty((face_ids.shape[0], 3), dtype=np.float32)
         with torch.no_grad():
-            if face_ids.shape[0] >= TABLES_POINTS_PER_VERTEX * self.field.n_vertices:
+            dense = face_ids.shape[0] >= TABLES_POINTS_PER_VERTEX * self.field.n_vertices
+            if self.tables is None and dense:
                 # dense workload: per-vertex candidate tables for the whole mesh, built once
                 # and kept while this query object lives (kernels.tables)
                 self.model.prepare_tables()

@@ -304,6 +304,39 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=n_k)
 
 
+def all_face_tables(
+    field, tables: VertexTables, k_s: int, max_bytes: int, chunk: int = 4096
+) -> FaceTables | None:
+    """Face tables of every face (built in chunks of faces), or None above ``max_bytes``."""
+    parts = []
+    total = 0
+    for start in range(0, field.n_faces, chunk):
+        faces = torch.arange(start, min(field.n_faces, start + chunk), device=field.faces.device)
+        ft = face_tables(field, tables, faces, k_s)
+        total += sum(t.numel() * t.element_size() for t in (ft.kid, ft.h, ft.d2, ft.edge2))
+        if total > max_bytes:
+            return None
+        parts.append(ft)
+    width = max(ft.kid.shape[1] for ft in parts)
+
+    def pad(t: torch.Tensor, value) -> torch.Tensor:
+        extra = width - t.shape[1]
+        if extra == 0:
+            return t
+        shape = (t.shape[0], extra, *t.shape[2:])
+        return torch.cat([t, torch.full(shape, value, dtype=t.dtype, device=t.device)], dim=1)
+
+    n_k = tables.n_kernels
+    return FaceTables(
+        rows=torch.arange(field.n_faces, device=field.faces.device),
+        kid=torch.cat([pad(ft.kid, n_k) for ft in parts]),
+        h=torch.cat([pad(ft.h, 0.0) for ft in parts]),
+        d2=torch.cat([pad(ft.d2, 0.0) for ft in parts]),
+        edge2=torch.cat([ft.edge2 for ft in parts]),
+        n_kernels=n_k,
+    )
+
+
 def point_distances(
     ft: FaceTables, face_ids: torch.Tensor, bary: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
