@@ -19,6 +19,7 @@ from hktex_server.api import schemas, validation
 from hktex_server.api.assets import router as assets_router
 from hktex_server.api.auth import current_owner
 from hktex_server.api.catalog import router as catalog_router
+from hktex_server.api.compute import ComputePool
 from hktex_server.api.jobs import router as jobs_router
 from hktex_server.api.kernelsets import router as kernelsets_router
 from hktex_server.api.meshes import router as meshes_router
@@ -84,14 +85,17 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
             queries=QueryCache(settings.query_cache_size),
             workers=settings.workers if run_supervisor else 0,
             devices=detect_devices(settings),
+            compute=ComputePool(settings),
         )
         threading.Thread(target=validation.warm, name="hktex-validation-warm", daemon=True).start()
+        app.state.svc.compute.start()
         thread = SupervisorThread(settings) if run_supervisor else None
         if thread is not None:
             thread.start()
         try:
             yield
         finally:
+            app.state.svc.compute.close()
             if thread is not None:
                 thread.stop()
             db.dispose()
