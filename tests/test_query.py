@@ -200,3 +200,47 @@ def test_cli_query(tmp_path, spectra, kernelset, query, capsys):
         main(["query", str(tmp_path / "junk.hkt"), *args[2:], "--points", str(tmp_path / "p.npy")])
         == 2
     )
+
+
+def test_cli_query_dense_builds_tables_with_the_state(tmp_path, spectra, kernelset, capsys):
+    """A call with more points than vertices builds the candidate tables before the timer
+    (``state_seconds``) and answers as the per-point path does."""
+    import json
+
+    from hktex_engine.cli import main
+    from hktex_engine.kernels.hkt import save_hkt
+    from hktex_engine.spectra.grid import write_spectra
+
+    sdir = write_spectra(spectra, tmp_path / "spectra")
+    hkt = save_hkt(kernelset, tmp_path / "k.hkt", compact=False)
+    n = 2 * spectra.vertices.shape[0]
+    face_ids, bary = random_points(spectra, n, seed=10)
+    np.save(tmp_path / "f.npy", face_ids)
+    np.save(tmp_path / "b.npy", bary)
+    rc = main(
+        [
+            "query",
+            str(hkt),
+            "--spectra",
+            str(sdir),
+            "-o",
+            str(tmp_path / "c.out"),
+            "--faces",
+            str(tmp_path / "f.npy"),
+            "--barycentrics",
+            str(tmp_path / "b.npy"),
+            "--json",
+        ]
+    )
+    summary = json.loads(capsys.readouterr().out)
+    assert rc == 0 and summary["count"] == n and summary["state_seconds"] > 0
+    sparse = AlbedoQuery(spectra, kernelset, device="cpu", tables=False)
+    with torch.no_grad():
+        from hktex_engine.kernels import model as kernels_mod
+
+        old, kernels_mod.TABLE_PATH = kernels_mod.TABLE_PATH, "never"
+        try:
+            ref = sparse.colors(face_ids, bary)
+        finally:
+            kernels_mod.TABLE_PATH = old
+    np.testing.assert_allclose(np.load(tmp_path / "c.out"), ref, atol=1e-5)
