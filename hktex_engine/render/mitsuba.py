@@ -639,7 +639,7 @@ class RenderScene:
             si = self.scene.ray_intersect(ray)
             valid = np.array(si.is_valid(), dtype=bool)
             face = np.array(si.prim_index, dtype=np.int64)
-            p = np.array(si.p, dtype=np.float64).reshape(-1, 3) if n else np.zeros((0, 3))
+            p = np.array(si.p, dtype=np.float64).reshape(3, -1).T if n else np.zeros((0, 3))
         face = np.where(valid, face, -1)
         bary = np.zeros((n, 3), dtype=np.float64)
         if valid.any():
