@@ -63,6 +63,11 @@ def info(owner: str = Depends(current_owner), svc: ServiceState = Depends(servic
             "max_json_batch_points": st.max_json_batch_points,
             "max_jobs_per_owner": st.max_jobs_per_owner,
             "max_running_per_owner": st.max_running_per_owner,
+            "max_render_samples": st.max_render_samples,
+            "max_queued_per_owner": st.max_queued_per_owner,
+            "compute_workers": st.compute_workers_resolved(),
+            "compute_timeout_seconds": int(st.compute_timeout_seconds),
+            "compute_memory_bytes": st.compute_memory_bytes,
         },
     )
 
