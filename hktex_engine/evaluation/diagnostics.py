@@ -83,3 +83,45 @@ def edge_flat_split(
     out["psnr_edge"] = psnr(pred[edge], target[edge]) if edge.any() else None
     out["psnr_flat"] = psnr(pred[~edge], target[~edge]) if (~edge).any() else None
     return out
+
+
+def edge_widths(model, face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Surface width ``1 / |∇ρ|`` of kernel edges at the given points (normalised units).
+
+    At each point the final kernel whose ρ is nearest 0.5 is taken (its level set runs
+    there); points where no final kernel lies in (0.05, 0.95) give NaN. ``∇ρ`` is the
+    tangent gradient through the barycentrics (autograd), so this measures the footprint's
+    edge as the model draws it, soft step and heat kernel together.
+    """
+    from hktex_engine.kernels.model import barycentric_gradients
+
+    dev, dt = model.base_color.device, model.base_color.dtype
+    f = torch.as_tensor(face_ids, device=dev)
+    with torch.no_grad():
+        _, aux = model.albedo(f, torch.as_tensor(bary, device=dev, dtype=dt), return_aux=True)
+    rho, kid = aux["rho"], aux["indices"]
+    pick = (rho - 0.5).abs().argmin(dim=1, keepdim=True)
+    inside = ((rho.gather(1, pick) > 0.05) & (rho.gather(1, pick) < 0.95)).squeeze(1)
+    b = torch.as_tensor(bary, device=dev, dtype=dt).clone().requires_grad_(True)
+    r, _ = model.responses(f, b, kid.gather(1, pick))
+    (g_b,) = torch.autograd.grad(r.sum(), b)
+    vertices = torch.as_tensor(np.asarray(model.field.spectra.vertices), device=dev, dtype=dt)
+    faces = torch.as_tensor(np.asarray(model.field.spectra.faces), device=dev)
+    grads = barycentric_gradients(vertices, faces)[f]  # (P, 3, 3)
+    g = (g_b.detach()[:, :, None] * grads).sum(dim=1).norm(dim=1)
+    width = torch.where(inside & (g > 0), 1.0 / g.clamp_min(1e-12), torch.nan)
+    return width.cpu().numpy()
+
+
+def texel_size(mesh: Mesh) -> float:
+    """Median surface length of one texel (normalised units): how wide a sharp texture edge
+    is on the surface, to set beside ``edge_widths``."""
+    faces = np.asarray(mesh.faces)
+    p = np.asarray(mesh.vertices)[faces]
+    a3 = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    uv = np.asarray(mesh.corner_uvs)
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    auv = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    h, w = np.asarray(mesh.texture).shape[:2]
+    ok = auv > 0
+    return float(np.median(np.sqrt(a3[ok] / (auv[ok] * h * w))))
