@@ -246,6 +246,7 @@ class FaceTables:
     d2: torch.Tensor  # (F, L, 3) float64, 0 on padding
     edge2: torch.Tensor  # (F, 3) float64: |e0 - e1|^2, |e0 - e2|^2, |e1 - e2|^2
     n_kernels: int
+    count: torch.Tensor  # (F,) candidates per face (they come first in each row)
 
 
 def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> FaceTables:
@@ -301,7 +302,7 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     h, d2 = h_out, d2_out
     face_rows = torch.full((field.n_faces,), -1, dtype=torch.long, device=faces.device)
     face_rows[faces] = torch.arange(faces.shape[0], device=faces.device)
-    return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=n_k)
+    return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=n_k, count=counts)
 
 
 def all_face_tables(
@@ -334,6 +335,7 @@ def all_face_tables(
         d2=torch.cat([pad(ft.d2, 0.0) for ft in parts]),
         edge2=torch.cat([ft.edge2 for ft in parts]),
         n_kernels=n_k,
+        count=torch.cat([ft.count for ft in parts]),
     )
 
 
@@ -344,9 +346,11 @@ def point_distances(
     ``n_kernels``) and their exact squared distances (``+inf`` on padding)."""
     row = ft.rows[face_ids]
     b64 = bary.to(torch.float64)
-    kid = ft.kid[row]
+    # rows are compacted (candidates first): keep only the columns this batch's faces use
+    width = int(ft.count[row].max()) if row.numel() else 0
+    kid = ft.kid[row, :width]
     # elementwise (not a matmul), so equal table rows (clones) give equal bits
-    dv = ft.d2[row]
+    dv = ft.d2[row, :width]
     d2 = dv[:, :, 0] * b64[:, 0:1] + dv[:, :, 1] * b64[:, 1:2] + dv[:, :, 2] * b64[:, 2:3]
     e2 = ft.edge2[row]
     quad = b64[:, 0] * b64[:, 1] * e2[:, 0] + b64[:, 0] * b64[:, 2] * e2[:, 1]
