@@ -348,9 +348,9 @@ def point_distances(
     b64 = bary.to(torch.float64)
     # rows are compacted (candidates first): keep only the columns this batch's faces use
     width = int(ft.count[row].max()) if row.numel() else 0
-    kid = ft.kid[row, :width]
+    kid = ft.kid[row][:, :width]  # gather rows, then narrow (narrowing first copies the table)
     # elementwise (not a matmul), so equal table rows (clones) give equal bits
-    dv = ft.d2[row, :width]
+    dv = ft.d2[row][:, :width]
     d2 = dv[:, :, 0] * b64[:, 0:1] + dv[:, :, 1] * b64[:, 1:2] + dv[:, :, 2] * b64[:, 2:3]
     e2 = ft.edge2[row]
     quad = b64[:, 0] * b64[:, 1] * e2[:, 0] + b64[:, 0] * b64[:, 2] * e2[:, 1]
