@@ -23,7 +23,6 @@ from hktex_server.api.compute import ComputePool
 from hktex_server.api.jobs import router as jobs_router
 from hktex_server.api.kernelsets import router as kernelsets_router
 from hktex_server.api.meshes import router as meshes_router
-from hktex_server.api.querycache import QueryCache
 from hktex_server.jobs import queue as jobqueue
 from hktex_server.jobs.supervisor import SupervisorThread, detect_devices
 from hktex_server.settings import Settings
@@ -87,7 +86,6 @@ def create_app(settings: Settings | None = None, start_supervisor: bool | None =
             settings=settings,
             db=db,
             store=BlobStore(settings.data_dir),
-            queries=QueryCache(settings.query_cache_size),
             workers=settings.workers if run_supervisor else 0,
             devices=detect_devices(settings),
             compute=ComputePool(settings),

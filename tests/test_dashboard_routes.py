@@ -5,13 +5,14 @@ and error layers) works on a tiny kernel set; plus the error-map maths."""
 from __future__ import annotations
 
 import io
+import threading
 
 import httpx
 import numpy as np
 import pytest
 from PIL import Image
 
-from tests.server_support import LiveServer, fast_settings
+from tests.server_support import LiveServer, fast_settings, wait_for
 
 ALICE = {"Authorization": "Bearer tok-alice"}
 BOB = {"Authorization": "Bearer tok-bob"}
@@ -166,3 +167,64 @@ def test_client_reaches_the_dashboard_routes(live, tmp_path) -> None:
         assert alice.bake_layer(ks_id, "error", resolution=256)[:4] == b"\x89PNG"
     with Client(live.url, token="tok-bob") as bob, pytest.raises(NotFound):
         bob.bake(ks_id)
+
+
+def test_bake_runs_in_a_compute_worker_under_the_time_budget(live, monkeypatch) -> None:
+    """The bake is a compute-pool task: never run in the API process, one task for identical
+    requests at once, and past the time budget the same 503 as a render (worker killed, its
+    half-written temp directory removed)."""
+    import hktex_engine.render.bake as bake_module
+
+    def not_here(*_a, **_k):
+        raise AssertionError("baked in the API process")
+
+    monkeypatch.setattr(bake_module, "bake_texture", not_here)  # workers are other processes
+    svc = live.server.config.app.state.svc
+    kinds: list[str] = []
+    submit = svc.compute.submit
+
+    def spy(owner, kind, payload, cleanup=None):
+        kinds.append(kind)
+        return submit(owner, kind, payload, cleanup)
+
+    monkeypatch.setattr(svc.compute, "submit", spy)
+    tmp = live.settings.data_dir / "tmp"
+    with httpx.Client(base_url=live.url, headers=ALICE, timeout=120) as alice:
+        ks_id = alice.get("/v1/kernelsets").json()["items"][0]["id"]  # the earlier test's
+        monkeypatch.setattr(svc.settings, "compute_timeout_seconds", 0.05)
+        slow = alice.get(f"/v1/kernelsets/{ks_id}/bake", params={"resolution": 1024})
+        render = alice.get(f"/v1/kernelsets/{ks_id}/render", params={"width": 32, "height": 32})
+        assert slow.status_code == 503 and "retry-after" not in slow.headers, slow.text
+        assert "ran past its time budget of 0.05 s" in slow.json()["detail"]
+        assert render.status_code == 503, render.text
+        if "renderer unavailable" not in render.text:  # else no render to compare with
+            assert slow.json() == render.json(), "a bake over budget answers as a render does"
+            assert "retry-after" not in render.headers
+        wait_for(lambda: not any(p.is_dir() for p in tmp.iterdir()), 10, "the temp dir removed")
+        monkeypatch.setattr(svc.settings, "compute_timeout_seconds", 120.0)
+        kinds.clear()
+        answers: list[httpx.Response] = []
+
+        def bake512() -> None:
+            params = {"resolution": 512}
+            answers.append(
+                httpx.get(
+                    f"{live.url}/v1/kernelsets/{ks_id}/bake",
+                    params=params,
+                    headers=ALICE,
+                    timeout=120,
+                )
+            )
+
+        both = [threading.Thread(target=bake512) for _ in range(2)]
+        for t in both:
+            t.start()
+        for t in both:
+            t.join(120)
+        assert [r.status_code for r in answers] == [200, 200], [r.text for r in answers]
+        assert answers[0].json() == answers[1].json() and answers[0].json()["resolution"] == 512
+        assert kinds == ["bake"], "identical bakes at once share one compute task"
+        assert (
+            alice.get(f"/v1/kernelsets/{ks_id}/glb", params={"resolution": 512}).status_code == 200
+        )
+        assert kinds == ["bake"], "a baked kernel set is read from derived/, not baked again"

@@ -359,3 +359,44 @@ def test_pool_kills_a_cancelled_or_overdue_request(tmp_path) -> None:
     finally:
         pool.close()
     assert all(not s.alive() for s in pool.slots), "close() leaves no worker behind"
+
+
+class _Client:
+    """What ``ComputePool.run`` asks of a request: whether its client went away."""
+
+    def __init__(self) -> None:
+        self.gone = False
+
+    async def is_disconnected(self) -> bool:
+        return self.gone
+
+
+def test_pool_shared_task_ends_only_when_its_last_caller_goes(tmp_path) -> None:
+    import asyncio
+
+    pool = _pool(tmp_path, compute_workers=1)
+    try:
+
+        async def scenario():
+            a, b = _Client(), _Client()
+            ping = {"seconds": 1.0}
+            one = asyncio.ensure_future(pool.run(a, "alice", "ping", ping, share="k"))
+            two = asyncio.ensure_future(pool.run(b, "bob", "ping", ping, share="k"))
+            await asyncio.sleep(0.3)
+            a.gone = True  # one caller leaves: the other still gets the shared answer
+            with pytest.raises(ComputeError) as err:
+                await one
+            assert err.value.status_code == 499
+            pid = await two
+            c = _Client()
+            three = asyncio.ensure_future(pool.run(c, "alice", "ping", ping, share="k"))
+            await asyncio.sleep(0.3)
+            c.gone = True  # the only caller leaves: the task is cancelled, its worker killed
+            with pytest.raises(ComputeError):
+                await three
+            return pid, await pool.run(None, "alice", "ping", {}, share="k")
+
+        first, after = asyncio.run(scenario())
+        assert first != after, "the last caller leaving killed the shared task's worker"
+    finally:
+        pool.close()

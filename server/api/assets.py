@@ -3,22 +3,19 @@
 The dashboard's viewer shows the baked GLB and swaps its base-colour texture between three
 layers on the same UV layout: ``kernel`` (the bake), ``original`` (the texture the mesh was
 uploaded with, resampled to the bake's size) and ``error`` (a heat map of the two,
-``hktex_engine.render.errormap``). One bake makes all of them at once, on a single background
-thread (``Baker``), so a bake of seconds never blocks the event loop and two bakes never fight
-over two cores; concurrent requests for the same bake wait on the same future. Results are
-kept under ``derived/`` in the data dir, keyed by the kernel set's content-addressed file and
-the mesh's blobs, so a second look is a file read.
+``hktex_engine.render.errormap``). One bake makes all of them at once, in a compute worker
+(``compute.py``: the same time and memory budgets, owner queues and kill on disconnect as a
+render; ``compute_child.Worker.bake``); concurrent requests for the same bake wait on one task,
+killed only when all of them have gone. Results are published by one rename under ``derived/``
+in the data dir, keyed by the kernel set's content-addressed file and the mesh's blobs, so a
+second look is a file read in the API process.
 """
 
 from __future__ import annotations
 
-import asyncio
 import hashlib
 import json
 import shutil
-import threading
-import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from enum import IntEnum
 from pathlib import Path
 from typing import Literal
@@ -34,7 +31,12 @@ from hktex_server.storage.db import KernelSetRow, MeshRow, SpectraRow
 from pydantic import BaseModel, Field
 
 router = APIRouter(prefix="/v1", tags=["kernelsets"])
-RESPONSES = {409: {"description": "the kernel set's spectra are not available"}, **ERRORS}
+RESPONSES = {
+    409: {"description": "the kernel set's spectra are not available"},
+    429: {"description": "too many of your requests are waiting"},
+    503: {"description": "over its time budget, or shutting down"},
+    **ERRORS,
+}
 
 Layer = Literal["kernel", "original", "error"]
 GLB = "model/gltf-binary"
@@ -71,40 +73,10 @@ class BakeInfo(BaseModel):
     seconds: float = Field(description="time the bake took when it ran")
 
 
-class Baker:
-    """One background thread for bakes, and the bakes in flight by key (deduplicated)."""
-
-    def __init__(self) -> None:
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hktex-bake")
-        self._lock = threading.Lock()
-        self._running: dict[str, Future] = {}
-
-    def submit(self, key: str, fn, *args) -> Future:
-        with self._lock:
-            fut = self._running.get(key)
-            if fut is None:
-                fut = self._pool.submit(fn, *args)
-                self._running[key] = fut
-                fut.add_done_callback(lambda _f: self._forget(key))
-            return fut
-
-    def _forget(self, key: str) -> None:
-        with self._lock:
-            self._running.pop(key, None)
-
-    def shutdown(self) -> None:
-        self._pool.shutdown(wait=False, cancel_futures=True)
-
-
-def baker(request: Request) -> Baker:
-    """FastAPI dependency: the app's baker, made on first use."""
-    state = request.app.state
-    if getattr(state, "baker", None) is None:
-        state.baker = Baker()
-    return state.baker
-
-
-def _lookup(svc: ServiceState, owner: str, kernelset_id: str, resolution: int):
+def _lookup(svc: ServiceState, owner: str, kernelset_id: str, resolution: int) -> dict:
+    """The bake's compute payload (404 for another owner's kernel set, 409 without spectra);
+    ``final`` is where the bake lives, keyed by the kernel set's content-addressed file and
+    the mesh's blobs."""
     with svc.db.read() as s:
         ks = own(s, KernelSetRow, kernelset_id, owner, "kernel set")
         spectra = s.get(SpectraRow, ks.spectra_id)
@@ -112,97 +84,58 @@ def _lookup(svc: ServiceState, owner: str, kernelset_id: str, resolution: int):
     if spectra is None or spectra.state != "ready" or not spectra.path:
         raise HTTPException(409, detail="the spectra of this kernel set are not available")
     parts = [ks.path, str(resolution)]
+    mesh_files = None
     if mesh is not None:
         parts += [mesh.mesh_blob, mesh.texture_blob or ""]
+        mesh_files = {
+            "mesh_path": str(svc.store.abs(mesh.mesh_blob)),
+            "texture_path": str(svc.store.abs(mesh.texture_blob)) if mesh.texture_blob else None,
+        }
     key = hashlib.sha256("\n".join(parts).encode()).hexdigest()[:32]
-    return ks, spectra, mesh, key
+    return {
+        "ks": {
+            "kernelset_id": ks.id,
+            "spectra_path": str(svc.store.abs(spectra.path)),
+            "hkt_path": str(svc.store.abs(ks.path)),
+            "mesh_hash": spectra.mesh_hash,
+        },
+        "mesh": mesh_files,
+        "resolution": resolution,
+        "max_vertices": svc.settings.max_vertices,
+        "tmp": str(svc.store.temp_path()),  # made by the worker, removed here if it dies
+        "final": str(svc.store.root / "derived" / key),
+    }
 
 
-def _bake(svc: ServiceState, ks: KernelSetRow, spectra_row, mesh_row, resolution: int, key: str):
-    """Bake all layers into ``derived/<key>`` (atomic publish) and return its path."""
-    final = svc.store.root / "derived" / key
+async def _baked(svc: ServiceState, request: Request, owner: str, kernelset_id: str, res: int):
+    """The bake's directory: read from ``derived/`` when it exists, else baked in a compute
+    worker (time and memory budgets, killed when every client asking for it has gone)."""
+    payload = await run_in_threadpool(_lookup, svc, owner, kernelset_id, int(res))
+    final = Path(payload["final"])
     if (final / "bake.json").is_file():
         return final
-    from hktex_engine.geometry.mesh import load_mesh
-    from hktex_engine.render.bake import (
-        bake_texture,
-        rasterize_uv,
-        textured_trimesh,
-        write_glb,
-        write_png,
+    tmp = payload["tmp"]
+    await svc.compute.run(
+        request,
+        owner,
+        "bake",
+        payload,
+        share=f"bake:{final.name}",
+        cleanup=lambda: shutil.rmtree(tmp, ignore_errors=True),
     )
-    from hktex_engine.render.errormap import DEFAULT_SCALE, error_texture, resample_texture
-
-    start = time.perf_counter()
-    warm = svc.queries.get(
-        ks.id,
-        str(svc.store.abs(spectra_row.path)),
-        str(svc.store.abs(ks.path)),
-        spectra_row.mesh_hash,
-    )
-    mesh = None
-    if mesh_row is not None:
-        texture = svc.store.abs(mesh_row.texture_blob) if mesh_row.texture_blob else None
-        mesh = load_mesh(
-            svc.store.abs(mesh_row.mesh_blob),
-            texture=texture,
-            max_vertices=svc.settings.max_vertices,
-        )
-        if mesh.content_hash != warm.spectra.mesh_hash:
-            mesh = None  # not the geometry of these spectra: bake on a fresh atlas
-    bake = bake_texture(warm.spectra, warm.kernelset, mesh, resolution)
-    tmp = svc.store.temp_dir()
-    try:
-        write_png(tmp / "kernel.png", bake.texture)
-        write_glb(tmp / "model.glb", textured_trimesh(warm.spectra, bake))
-        layers, scale, rms = ["kernel"], None, None
-        if mesh is not None and mesh.texture is not None and bake.atlas == "mesh":
-            original = resample_texture(mesh.texture, resolution)
-            write_png(tmp / "original.png", original)
-            covered = rasterize_uv(bake.corner_uvs, resolution, resolution)[0] >= 0
-            heat, rms = error_texture(bake.texture, original, DEFAULT_SCALE, covered)
-            write_png(tmp / "error.png", heat)
-            layers += ["original", "error"]
-            scale = DEFAULT_SCALE
-        meta = {
-            "resolution": resolution,
-            "atlas": bake.atlas,
-            "coverage": round(bake.coverage, 4),
-            "layers": layers,
-            "error_scale": scale,
-            "error_rms": None if rms is None else round(rms, 5),
-            "glb_bytes": (tmp / "model.glb").stat().st_size,
-            "seconds": round(time.perf_counter() - start, 3),
-        }
-        (tmp / "bake.json").write_text(json.dumps(meta))  # written last: marks it complete
-        svc.store.publish_dir(tmp, "derived", key)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return final
-
-
-async def _baked(svc: ServiceState, bakes: Baker, owner: str, kernelset_id: str, res: int):
-    res = int(res)
-    ks, spectra, mesh, key = await run_in_threadpool(_lookup, svc, owner, kernelset_id, res)
-    fut = bakes.submit(key, _bake, svc, ks, spectra, mesh, res, key)
-    from hktex_engine.errors import HKTexError
-
-    try:
-        return await asyncio.wrap_future(fut)
-    except HKTexError as exc:
-        raise HTTPException(422, detail=f"bake failed: {type(exc).__name__}: {exc}") from None
 
 
 @router.get("/kernelsets/{kernelset_id}/bake", response_model=BakeInfo, responses=RESPONSES)
 async def bake_info(
+    request: Request,
     kernelset_id: str,
     resolution: Resolution = RESOLUTION,
     owner: str = Depends(current_owner),
     svc: ServiceState = Depends(service),
-    bakes: Baker = Depends(baker),
 ) -> BakeInfo:
     """Bake the kernel set for the viewer (or reuse the earlier bake) and say what there is."""
-    path = await _baked(svc, bakes, owner, kernelset_id, resolution)
+    path = await _baked(svc, request, owner, kernelset_id, resolution)
     meta = json.loads((path / "bake.json").read_text())
     return BakeInfo(kernelset_id=kernelset_id, **meta)
 
@@ -213,14 +146,14 @@ async def bake_info(
     responses={200: {"content": {GLB: {}}}, **RESPONSES},
 )
 async def get_glb(
+    request: Request,
     kernelset_id: str,
     resolution: Resolution = RESOLUTION,
     owner: str = Depends(current_owner),
     svc: ServiceState = Depends(service),
-    bakes: Baker = Depends(baker),
 ):
     """The kernel set baked into a textured GLB (mesh file units, sRGB base colour)."""
-    path = await _baked(svc, bakes, owner, kernelset_id, resolution)
+    path = await _baked(svc, request, owner, kernelset_id, resolution)
     return FileResponse(path / "model.glb", media_type=GLB, filename=f"{kernelset_id}.glb")
 
 
@@ -230,15 +163,15 @@ async def get_glb(
     responses={200: {"content": {"image/png": {}}}, **RESPONSES},
 )
 async def get_texture(
+    request: Request,
     kernelset_id: str,
     layer: Layer,
     resolution: Resolution = RESOLUTION,
     owner: str = Depends(current_owner),
     svc: ServiceState = Depends(service),
-    bakes: Baker = Depends(baker),
 ):
     """One UV-space layer of the bake as PNG: ``kernel``, ``original`` or ``error``."""
-    path: Path = await _baked(svc, bakes, owner, kernelset_id, resolution)
+    path: Path = await _baked(svc, request, owner, kernelset_id, resolution)
     file = path / f"{layer}.png"
     if not file.is_file():
         raise HTTPException(

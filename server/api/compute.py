@@ -1,4 +1,5 @@
-"""Request-time heavy work (albedo queries, renders) in a bounded pool of worker processes.
+"""Request-time heavy work (albedo queries, renders, views decoding, the viewer's bakes) in a
+bounded pool of worker processes.
 
 Why processes: a render or a big query on an API thread cannot be stopped (Python has no
 thread kill), holds the GIL against the event loop, and leaves its memory in the API process
@@ -14,7 +15,8 @@ client left). In a worker process it can be killed, and its memory goes with it.
   per worker; an owner may hold ``max_queued_per_owner`` waiting requests (then 429).
 - Budgets: ``compute_timeout_seconds`` of run time (then the worker is killed: 503) and
   ``compute_memory_bytes`` of address space per request (``RLIMIT_AS`` in the worker: 422).
-- A request whose client disconnects is dropped from the queue, or its worker is killed.
+- A request whose client disconnects is dropped from the queue, or its worker is killed;
+  identical requests may share one task (``share``), cancelled when the last caller goes.
 - ``abort`` (on SIGTERM) fails everything at once with 503, so in-flight requests do not hold
   up the server's exit; ``close`` kills the workers.
 
@@ -29,6 +31,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -59,6 +62,9 @@ class ComputeTask:
     future: Future = field(default_factory=Future)
     cancelled: threading.Event = field(default_factory=threading.Event)
     queued_at: float = field(default_factory=time.monotonic)
+    #: called on the driver thread once the task has run, after its worker answered or was
+    #: killed (so nothing still writes): removes what a killed worker left half-written
+    cleanup: Callable[[], None] | None = None
 
     def cancel(self) -> None:
         self.cancelled.set()
@@ -194,6 +200,11 @@ class _Slot:
                 self._run(task)
             finally:
                 self.task = None
+                if task.cleanup is not None:
+                    try:
+                        task.cleanup()
+                    except Exception:  # noqa: BLE001 - a leftover temp file is not fatal
+                        log.exception("compute cleanup of a %s request failed", task.kind)
         self._stop()
 
     def _run(self, task: ComputeTask) -> None:
@@ -255,6 +266,14 @@ class _Slot:
         task.future.set_exception(ComputeError(status, detail=detail, headers=headers))
 
 
+@dataclass(eq=False)
+class _Shared:
+    """A task several identical requests wait on; cancelled when the last of them leaves."""
+
+    task: ComputeTask
+    waiters: int = 1
+
+
 class ComputePool:
     """The pool; ``start`` at service start, ``await run(...)`` per request, ``close`` at exit."""
 
@@ -264,24 +283,84 @@ class ComputePool:
         self.queue = FairQueue(settings.max_queued_per_owner)
         self.closing = threading.Event()
         self.slots = [_Slot(self, i) for i in range(self.size)]
+        self._shared: dict[str, _Shared] = {}
+        self._shared_lock = threading.Lock()
 
     def start(self) -> None:
         for slot in self.slots:
             slot.thread.start()
 
-    def submit(self, owner: str, kind: str, payload: dict[str, Any]) -> ComputeTask:
+    def submit(
+        self,
+        owner: str,
+        kind: str,
+        payload: dict[str, Any],
+        cleanup: Callable[[], None] | None = None,
+    ) -> ComputeTask:
         st = self.settings
         task = ComputeTask(
-            owner, kind, payload, st.compute_timeout_seconds, st.compute_memory_bytes
+            owner,
+            kind,
+            payload,
+            st.compute_timeout_seconds,
+            st.compute_memory_bytes,
+            cleanup=cleanup,
         )
         if self.closing.is_set():
             raise ComputeError(503, detail="the service is shutting down")
         self.queue.put(task)
         return task
 
-    async def run(self, request: Request | None, owner: str, kind: str, payload: dict) -> Any:
-        """Submit and wait; the task is cancelled (its worker killed) if the client goes."""
-        task = self.submit(owner, kind, payload)
+    def _join(self, key: str, owner: str, kind: str, payload: dict, cleanup) -> _Shared:
+        """The running task for ``key``, or a new one submitted for this caller."""
+        with self._shared_lock:
+            entry = self._shared.get(key)
+            if entry is not None and not entry.task.future.done():
+                entry.waiters += 1
+                return entry
+            entry = _Shared(self.submit(owner, kind, payload, cleanup))
+            self._shared[key] = entry
+        entry.task.future.add_done_callback(lambda _f: self._forget(key, entry))
+        return entry
+
+    def _forget(self, key: str, entry: _Shared) -> None:
+        with self._shared_lock:
+            if self._shared.get(key) is entry:
+                del self._shared[key]
+
+    def _leave(self, key: str, entry: _Shared) -> None:
+        """One waiter went away; the last one cancels the task (its worker is killed)."""
+        with self._shared_lock:
+            entry.waiters -= 1
+            last = entry.waiters <= 0
+            if last and self._shared.get(key) is entry:
+                del self._shared[key]  # a request arriving now starts afresh
+        if last:
+            entry.task.cancel()
+
+    async def run(
+        self,
+        request: Request | None,
+        owner: str,
+        kind: str,
+        payload: dict,
+        share: str | None = None,
+        cleanup: Callable[[], None] | None = None,
+    ) -> Any:
+        """Submit and wait; the task is cancelled (its worker killed) if the client goes.
+
+        With ``share``, identical requests (same key) running at once wait on one task, queued
+        under the first caller's owner; it is cancelled only when all its callers have gone."""
+        if share is None:
+            task = self.submit(owner, kind, payload, cleanup)
+            leave = task.cancel
+        else:
+            entry = self._join(share, owner, kind, payload, cleanup)
+            task = entry.task
+
+            def leave() -> None:
+                self._leave(share, entry)
+
         waiter = asyncio.wrap_future(task.future)
         try:
             while True:
@@ -292,10 +371,10 @@ class ComputePool:
                     except Cancelled:
                         raise ComputeError(503, detail="cancelled") from None
                 if request is not None and await request.is_disconnected():
-                    _abandon(task, waiter)
+                    _abandon(leave, waiter)
                     raise ComputeError(499, detail="the client went away")
         except asyncio.CancelledError:
-            _abandon(task, waiter)
+            _abandon(leave, waiter)
             raise
 
     def abort(self, reason: str = "the service is shutting down") -> None:
@@ -331,7 +410,8 @@ class ComputePool:
         }
 
 
-def _abandon(task: ComputeTask, waiter: asyncio.Future) -> None:
-    """Cancel the task; nobody will read its outcome (say so to asyncio, which would warn)."""
+def _abandon(leave: Callable[[], None], waiter: asyncio.Future) -> None:
+    """Leave the task (cancelling it when nobody else waits); this caller will not read its
+    outcome (say so to asyncio, which would warn)."""
     waiter.add_done_callback(lambda f: f.cancelled() or f.exception())
-    task.cancel()
+    leave()

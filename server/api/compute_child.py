@@ -1,4 +1,4 @@
-"""The inside of a compute worker process: warm kernel sets, albedo queries, renders.
+"""The inside of a compute worker process: warm kernel sets, albedo queries, renders, bakes.
 
 The forkserver imports torch and the query engine at service start (``validation.PRELOAD``),
 so a new worker is a fork of a process that already holds them: a replacement for a killed
@@ -20,9 +20,11 @@ import io
 import json
 import os
 import resource
+import shutil
 import signal
 import time
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -105,6 +107,92 @@ class Worker:
         except HKTexError as exc:
             raise RequestError(503, f"render failed: {type(exc).__name__}: {exc}") from None
 
+    def bake(
+        self,
+        ks: dict,
+        mesh: dict | None,
+        resolution: int,
+        max_vertices: int,
+        tmp: str,
+        final: str,
+    ) -> bytes:
+        """Bake every viewer layer into ``tmp`` and publish it as ``final`` (one rename: a
+        reader sees all of a bake or none); the answer is its ``bake.json``. ``tmp`` is the
+        API's to remove if this worker is killed halfway."""
+        done = Path(final) / "bake.json"
+        if done.is_file():  # another request (or another API process) was first
+            return done.read_bytes()
+        warm = self.warm(**ks)
+        tmp_dir = Path(tmp)
+        tmp_dir.mkdir(parents=True)
+        try:
+            try:
+                write_bake(tmp_dir, warm.spectra, warm.kernelset, mesh, resolution, max_vertices)
+            except MemoryError:
+                raise
+            except (HKTexError, ValueError) as exc:
+                raise RequestError(422, f"bake failed: {type(exc).__name__}: {exc}") from None
+            Path(final).parent.mkdir(parents=True, exist_ok=True)
+            try:
+                os.rename(tmp_dir, final)
+            except OSError:  # published meanwhile by someone else: theirs wins
+                if not done.is_file():
+                    raise
+        finally:
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+        return done.read_bytes()
+
+
+def write_bake(
+    out: Path, spectra, kernelset, mesh_files: dict | None, resolution: int, max_vertices: int
+) -> dict:
+    """The kernel layer (PNG), the textured GLB and, for a mesh textured on its own UVs, the
+    original and error layers, into ``out``; ``bake.json`` (written last) describes them."""
+    from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.render.bake import (
+        bake_texture,
+        rasterize_uv,
+        textured_trimesh,
+        write_glb,
+        write_png,
+    )
+    from hktex_engine.render.errormap import DEFAULT_SCALE, error_texture, resample_texture
+
+    start = time.perf_counter()
+    mesh = None
+    if mesh_files is not None:
+        mesh = load_mesh(
+            mesh_files["mesh_path"],
+            texture=mesh_files.get("texture_path"),
+            max_vertices=max_vertices,
+        )
+        if mesh.content_hash != spectra.mesh_hash:
+            mesh = None  # not the geometry of these spectra: bake on a fresh atlas
+    bake = bake_texture(spectra, kernelset, mesh, resolution)
+    write_png(out / "kernel.png", bake.texture)
+    write_glb(out / "model.glb", textured_trimesh(spectra, bake))
+    layers, scale, rms = ["kernel"], None, None
+    if mesh is not None and mesh.texture is not None and bake.atlas == "mesh":
+        original = resample_texture(mesh.texture, resolution)
+        write_png(out / "original.png", original)
+        covered = rasterize_uv(bake.corner_uvs, resolution, resolution)[0] >= 0
+        heat, rms = error_texture(bake.texture, original, DEFAULT_SCALE, covered)
+        write_png(out / "error.png", heat)
+        layers += ["original", "error"]
+        scale = DEFAULT_SCALE
+    meta = {
+        "resolution": resolution,
+        "atlas": bake.atlas,
+        "coverage": round(bake.coverage, 4),
+        "layers": layers,
+        "error_scale": scale,
+        "error_rms": None if rms is None else round(rms, 5),
+        "glb_bytes": (out / "model.glb").stat().st_size,
+        "seconds": round(time.perf_counter() - start, 3),
+    }
+    (out / "bake.json").write_text(json.dumps(meta))  # written last: marks it complete
+    return meta
+
 
 def check_views(root: str) -> bytes:
     """Read and validate a views dataset (decoding every image), or say why not (422)."""
@@ -182,6 +270,8 @@ def handle(worker: Worker, kind: str, payload: dict[str, Any], memory: int) -> t
             return ("ok", worker.render(**payload))
         if kind == "views":
             return ("ok", check_views(**payload))
+        if kind == "bake":
+            return ("ok", worker.bake(**payload))
         if kind == "ping":  # a liveness probe; ``seconds`` (at most 5) holds the worker
             time.sleep(min(max(float(payload.get("seconds", 0.0)), 0.0), 5.0))
             return ("ok", str(os.getpid()).encode())

@@ -74,7 +74,6 @@ def delete_kernelset(
         shared = s.execute(
             select(KernelSetRow.id).where(KernelSetRow.path == row.path).limit(1)
         ).first()
-    svc.queries.discard(kernelset_id)
     if shared is None:
         svc.store.delete(row.path)
     return Response(status_code=204)

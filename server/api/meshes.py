@@ -280,8 +280,6 @@ def delete_mesh(
             if blob and s.execute(select(column).where(column == blob).limit(1)).first() is None
         ]
         orphaned += _orphaned_spectra(s, row.mesh_hash)
-    for kernelset in kernelsets:
-        svc.queries.discard(kernelset.id)
     for blob in orphaned:
         svc.store.delete(blob)
     for job in jobs:
