@@ -34,7 +34,7 @@ import torch
 from _machine import machine_info, machine_line
 
 from hktex_engine.config import SpectralConfig, fit_preset
-from hktex_engine.evaluation.baselines import VertexColorBaseline
+from hktex_engine.evaluation.baselines import MLPBaseline, VertexColorBaseline
 from hktex_engine.evaluation.diagnostics import edge_flat_split, saturation, truncation
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.fitting.uv import evaluate_albedo, fit_uv
@@ -92,6 +92,13 @@ def at_equal_bytes(curve: list[dict], nbytes: float) -> dict:
     return {"psnr": float(value), "extrapolated": bool(lx < x[0] or lx > x[-1])}
 
 
+def mlp_psnr(mesh, steps: int, batch: int, eval_f, eval_b, target) -> dict:
+    """The positional-encoding MLP trained on the same samples and steps as the fit."""
+    mlp = MLPBaseline(steps=steps, batch=batch)
+    mlp.fit(mesh)
+    return {"psnr": psnr(mlp.albedo(eval_f, eval_b), target), "bytes": int(mlp.nbytes)}
+
+
 def error_map_png(mesh, spectra, kernelset, path: Path, size: int = 512) -> dict:
     """Original | kernel bake | error heat map, side by side, on the mesh's UV layout."""
     from PIL import Image
@@ -128,11 +135,18 @@ def run_one(
         "surface_psnr": m["surface_psnr"],
         "bytes_zip": m["bytes_zip"],
         "bytes_raw": m["bytes_raw"],
+        "bytes_zip_quantised": m.get("bytes_zip_quantised"),
         "vertex_colours_equal_bytes": at_equal_bytes(curve, m["bytes_zip"]),
+        "vertex_colours_equal_quantised_bytes": at_equal_bytes(
+            curve, m.get("bytes_zip_quantised") or m["bytes_zip"]
+        ),
         "truncation": truncation(spectra, params.kernel.diffusion_time),
         "saturation": saturation(model, sat_f, sat_b),
         "split": edge_flat_split(mesh, pred, target, eval_f, eval_b),
         "colour_solve": m.get("colour_solve"),
+        "mlp_equal_samples": mlp_psnr(
+            mesh, params.steps, params.points_per_step, eval_f, eval_b, target
+        ),
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
     }

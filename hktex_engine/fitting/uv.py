@@ -178,14 +178,17 @@ def evaluate_albedo(model: HeatKernelModel, face_ids: np.ndarray, bary: np.ndarr
 
 
 def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
-    """Raw and zip bytes of the kernel set as a ``.hkt`` file (EVALUATION.md 'Bytes')."""
-    from hktex_engine.kernels.hkt import save_hkt
+    """Raw and zip bytes of the kernel set as a ``.hkt`` file (EVALUATION.md 'Bytes'), and
+    of its quantised form (format version 2, ``save_hkt(..., quantised=True)``)."""
+    from hktex_engine.kernels.hkt import hkt_bytes, save_hkt
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "k.hkt"
         save_hkt(kernelset, path)
         out = storage_bytes(path)
         out["file"] = path.stat().st_size
+    quantised = hkt_bytes(kernelset, quantised=True)
+    out["raw_quantised"], out["zip_quantised"] = quantised["raw"], quantised["zip"]
     return out
 
 
@@ -296,6 +299,8 @@ def fit_uv(
     nbytes = kernelset_bytes(kernelset)
     metrics["bytes_raw"], metrics["bytes_zip"] = nbytes["raw"], nbytes["zip"]
     metrics["bytes_file"] = nbytes["file"]
+    metrics["bytes_raw_quantised"] = nbytes["raw_quantised"]
+    metrics["bytes_zip_quantised"] = nbytes["zip_quantised"]
     metrics["spectra_bytes"] = spectra_bytes(spectra)
     timings["bytes_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
