@@ -75,6 +75,8 @@ CASES = _cases()
 
 
 def _bounds(schema: dict) -> tuple[float | None, float | None]:
+    if schema.get("enum"):  # a closed set of numbers (e.g. bake resolutions) is bounded
+        return min(schema["enum"]), max(schema["enum"])
     lo = schema.get("minimum", schema.get("exclusiveMinimum"))
     hi = schema.get("maximum", schema.get("exclusiveMaximum"))
     return lo, hi
