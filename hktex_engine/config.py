@@ -187,7 +187,8 @@ LATER_DENSITY = DensityRules(
 )
 
 #: Named, complete configurations: ``"earlier"`` is ALGORITHM.md §4-8's reference defaults
-#: (the authors' earlier UV configuration), ``"later"`` their later one (§7b) as a whole.
+#: (the authors' earlier UV configuration), ``"later"`` their later one (§7b) as a whole,
+#: ``"default"`` (added below) the later one with the colour solve: what a fit uses unnamed.
 PRESETS: dict[str, FitParams] = {
     "earlier": FitParams(),
     "later": FitParams(
@@ -212,8 +213,12 @@ PRESETS: dict[str, FitParams] = {
 }
 
 
-#: The preset a fit starts from when none is named (docs/fitting.md, "Choosing the defaults").
-DEFAULT_PRESET = "earlier"
+PRESETS["default"] = replace(PRESETS["later"], polish_colors=True)
+
+#: The preset a fit starts from when none is named: ``"default"``, the authors' later
+#: configuration plus the least-squares colour solve, chosen by measurement
+#: (docs/fitting.md, "Choosing the defaults"; benchmarks/results/fidelity.md).
+DEFAULT_PRESET = "default"
 
 
 def fit_preset(name: str, **overrides) -> FitParams:

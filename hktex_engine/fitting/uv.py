@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hktex_engine.config import FitParams
+from hktex_engine.config import DEFAULT_PRESET, FitParams, fit_preset
 from hktex_engine.errors import SpectraError, TextureError
 from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
 from hktex_engine.fitting.colour_solve import solve_colours
@@ -88,7 +88,7 @@ class UVObjective:
         self.n_points = int(n_points)
         self.device = device
         self.dtype = dtype
-        self.params = params or FitParams()
+        self.params = params or fit_preset(DEFAULT_PRESET)
 
     def sample(self, step: int, rng: np.random.Generator):
         face_ids, bary = sample_surface(self.mesh.vertices, self.mesh.faces, self.n_points, rng)
@@ -219,7 +219,7 @@ def fit_uv(
     surface-PSNR sample count (EVALUATION.md: 60,000; tests use fewer). ``transport_theta``
     re-expresses theta when a centre changes face (``fitting.run_fit``; off by default).
     """
-    params = params or FitParams()
+    params = params or fit_preset(DEFAULT_PRESET)
     if not mesh.has_texture:
         raise TextureError("UV fitting needs a mesh with UVs and an albedo texture")
     if spectra.mesh_hash and mesh.content_hash and spectra.mesh_hash != mesh.content_hash:

@@ -47,8 +47,10 @@ class SpectralConfigIn(_Strict):
 class FitParamsIn(_Strict):
     """Fitting parameters; every field optional (the preset's values, FitParams)."""
 
-    preset: Literal["earlier", "later"] | None = Field(
-        None, description="base configuration (ALGORITHM.md §7b); the other fields override it"
+    preset: Literal["default", "earlier", "later"] | None = Field(
+        None,
+        description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve);"
+        " the other fields override it",
     )
     polish_colors: bool | None = Field(
         None, description="solve the colours by least squares for the final footprints"
