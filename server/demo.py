@@ -416,8 +416,15 @@ def run_demo(args: argparse.Namespace) -> dict:
         obj, texture = _make_mesh(args, out)
     _say(args, f"mesh written to {obj}")
     # The demo's own service on the user's machine: a 512² render that needs longer than the
-    # shared-service budget (60 s, measured exceeded at load average 11) is still wanted.
-    settings = Settings(data_dir=data_dir, workers=1, tokens="", compute_timeout_seconds=600.0)
+    # shared-service budget (60 s, measured exceeded at load average 11) is still wanted, and
+    # more address space than its 4 GiB (Mitsuba's LLVM backend: std::bad_alloc measured at 4 GiB).
+    settings = Settings(
+        data_dir=data_dir,
+        workers=1,
+        tokens="",
+        compute_timeout_seconds=600.0,
+        compute_memory_bytes=16 * 1024**3,
+    )
     port = args.port if getattr(args, "serve", False) else 0
     with running_service(settings, port=port) as url, Client(url, timeout=300) as client:
         _say(args, f"service at {url} (data in {data_dir})")
