@@ -127,7 +127,12 @@ class FitParams:
     threshold/sharpness distributions (``"earlier"``: eps ~ U(0.9, 1), k ~ 10 + 40U;
     ``"later"``: eps ~ 0.3 + 0.7 U^0.7, k ~ 10 + 40 U^0.5). ``polish_colors`` solves the
     colours exactly by least squares for the final footprints after the last step
-    (the albedo is linear in them; ``fitting/colour_solve.py``).
+    (the albedo is linear in them; ``fitting/colour_solve.py``). ``sampling`` picks the
+    training points: ``"uniform"`` draws fresh area-uniform points every step; ``"error"``
+    draws from a fixed pool of ``sampling_pool`` area-uniform points, a share ``sampling_mix``
+    uniformly and the rest in proportion to each point's last residual (after the first
+    ``sampling_warmup`` fraction of the steps, uniform until then), weighted so the loss stays
+    the surface mean (``fitting/error_sampling.py``).
     """
 
     kernels: int = 10_000
@@ -154,8 +159,18 @@ class FitParams:
     init: Literal["earlier", "later"] = "earlier"
     density: DensityRules = field(default_factory=DensityRules)
     polish_colors: bool = False
+    sampling: Literal["uniform", "error"] = "uniform"
+    sampling_pool: int = 1_000_000
+    sampling_mix: float = 0.5
+    sampling_warmup: float = 0.05
 
     def __post_init__(self) -> None:
+        if self.sampling not in ("uniform", "error"):
+            raise ValueError("sampling must be 'uniform' or 'error'")
+        if not 0.0 < self.sampling_mix <= 1.0 or not 0.0 <= self.sampling_warmup <= 1.0:
+            raise ValueError("sampling_mix must be in (0, 1] and sampling_warmup in [0, 1]")
+        if self.sampling_pool < 1:
+            raise ValueError("sampling_pool must be >= 1")
         if isinstance(self.kernel, dict):
             object.__setattr__(self, "kernel", KernelConfig(**self.kernel))
         if isinstance(self.density, dict):

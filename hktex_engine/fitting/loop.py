@@ -160,7 +160,7 @@ def run_fit(
         if ckpt is not None:
             found = latest_checkpoint(ckpt)
             if found is not None:
-                start = load_checkpoint(found, model, opt, density, rng, fp)
+                start = load_checkpoint(found, model, opt, density, rng, fp, objective)
                 resumed_from = start
                 model.refresh()
         density.bind(model)
@@ -194,10 +194,10 @@ def run_fit(
                     last_report = now
                 if ckpt is not None and params.checkpoint_every > 0:
                     if step % params.checkpoint_every == 0 and step < total:
-                        save_checkpoint(ckpt, step, model, opt, density, rng, fp)
+                        save_checkpoint(ckpt, step, model, opt, density, rng, fp, objective)
         except Cancelled:
             if ckpt is not None:
-                save_checkpoint(ckpt, step, model, opt, density, rng, fp)
+                save_checkpoint(ckpt, step, model, opt, density, rng, fp, objective)
             raise
         result.steps = step
         result.density_events = list(density.events)
@@ -229,6 +229,7 @@ def save_checkpoint(
     density: DensityController,
     rng: np.random.Generator,
     fingerprint: dict,
+    objective: Objective | None = None,
 ) -> Path:
     """Write params + optimiser + density stats + rng to ``root/step-N`` atomically.
 
@@ -241,6 +242,8 @@ def save_checkpoint(
         arrays[f"model.{name}"] = getattr(model, name).detach().cpu().numpy()
     arrays.update(opt.state_arrays())
     arrays.update(density.state_arrays())
+    if hasattr(objective, "state_arrays"):  # objectives with state of their own (sampler)
+        arrays.update(objective.state_arrays())
     meta = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -273,6 +276,7 @@ def load_checkpoint(
     density: DensityController,
     rng: np.random.Generator,
     fingerprint: dict,
+    objective: Objective | None = None,
 ) -> int:
     """Restore everything :func:`save_checkpoint` wrote; returns the step to continue from."""
     meta = json.loads((path / "meta.json").read_text())
@@ -293,5 +297,7 @@ def load_checkpoint(
         model.base_color.copy_(torch.as_tensor(arrays["model.base_color"], device=device))
     opt.load_state_arrays(arrays, device)
     density.load_state(arrays, meta["density"], device)
+    if hasattr(objective, "load_state_arrays"):
+        objective.load_state_arrays(arrays)
     rng.bit_generator.state = meta["rng"]
     return int(meta["step"])

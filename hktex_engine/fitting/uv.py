@@ -22,6 +22,7 @@ from hktex_engine.config import DEFAULT_PRESET, FitParams, fit_preset
 from hktex_engine.errors import SpectraError, TextureError
 from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
 from hktex_engine.fitting.colour_solve import solve_colours
+from hktex_engine.fitting.error_sampling import ErrorSampler, weighted_batch
 from hktex_engine.fitting.loop import LoopResult, PointStats, run_fit
 from hktex_engine.geometry.geodesics import SurfaceTracer
 from hktex_engine.geometry.mesh import Mesh
@@ -46,6 +47,8 @@ EVAL_CHUNK = 4096
 #: points per kernel for the final colour solve (``FitParams.polish_colors``): ~2-3 x K_c
 #: samples per unknown colour keep the solve well determined without dominating the fit time
 POLISH_POINTS_PER_KERNEL = 30
+#: seed-stream label of the error sampler's point pool (independent of the loop's rng)
+POOL_STREAM = 0x5A3
 
 
 @dataclass
@@ -59,18 +62,25 @@ class FitResult:
     density_events: list[dict] = field(default_factory=list)
 
 
-def point_loss(pred: torch.Tensor, target: torch.Tensor, params: FitParams) -> torch.Tensor:
+def point_loss(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    params: FitParams,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
     """The fit's loss over a batch of (P, 3) colours, as ``params`` names it.
 
     ``loss_sum_rgb`` sums over the channels and averages over points (ALGORITHM.md §7b),
     otherwise the mean runs over all 3P elements (our first reading); the two differ by
     exactly a factor 3, which matters for the centres' plain SGD (Adam is scale-free).
+    ``weights`` (P,): importance weights of the points (error sampling), mean 1 in expectation.
     """
     if params.loss == "mse":
         per = (pred - target) ** 2
     else:
         per = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0, reduction="none")
-    return per.sum(dim=1).mean() if params.loss_sum_rgb else per.mean()
+    per = per.sum(dim=1) if params.loss_sum_rgb else per.mean(dim=1)
+    return (per * weights).mean() if weights is not None else per.mean()
 
 
 class UVObjective:
@@ -89,8 +99,19 @@ class UVObjective:
         self.device = device
         self.dtype = dtype
         self.params = params or fit_preset(DEFAULT_PRESET)
+        self.sampler: ErrorSampler | None = None
+        if self.params.sampling == "error":
+            # its own stream, so the pool does not shift the loop's draws (resume replays them)
+            pool_rng = np.random.default_rng([self.params.seed, POOL_STREAM])
+            self.sampler = ErrorSampler(
+                mesh, self.params.sampling_pool, self.params.sampling_mix, pool_rng
+            )
+        self.warmup_steps = int(round(self.params.sampling_warmup * self.params.steps))
 
     def sample(self, step: int, rng: np.random.Generator):
+        if self.sampler is not None:
+            driven = step >= self.warmup_steps
+            return weighted_batch(self.sampler, self.n_points, rng, driven, self.device, self.dtype)
         face_ids, bary = sample_surface(self.mesh.vertices, self.mesh.faces, self.n_points, rng)
         target = texture_lookup(self.mesh.texture, uv_at(self.mesh.corner_uvs, face_ids, bary))
         return (
@@ -100,11 +121,23 @@ class UVObjective:
         )
 
     def loss(self, model: HeatKernelModel, batch) -> tuple[torch.Tensor, PointStats]:
-        face_ids, bary, target = batch
+        face_ids, bary, target = batch[:3]
+        weights = batch[3] if len(batch) > 3 else None
         pred, aux = model.albedo(face_ids, bary, return_aux=True)
-        loss = point_loss(pred, target, self.params)
-        err = (pred.detach() - target).abs().mean(dim=1)
+        loss = point_loss(pred, target, self.params, weights)
+        residual = pred.detach() - target
+        if self.sampler is not None:
+            self.sampler.update(batch[4], residual.norm(dim=1).cpu().numpy())
+        err = residual.abs().mean(dim=1)
         return loss, PointStats(err, aux["indices"], aux["rho"].detach(), face_ids, bary)
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """What a checkpoint must keep of the objective (the sampler's scores)."""
+        return self.sampler.state_arrays() if self.sampler is not None else {}
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        if self.sampler is not None:
+            self.sampler.load_state_arrays(arrays)
 
 
 def initial_kernelset(
