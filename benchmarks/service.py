@@ -20,6 +20,8 @@ revision ``REV`` against the working tree's, in the same run on the same machine
 (``hktex serve`` with the old ``hktex_server`` extracted by ``git archive`` first on
 ``PYTHONPATH``, then the current one) gets the same seeded kernel set (spectra computed here,
 random kernels: no fit), the same query load, and ``/v1/health`` probed throughout the load.
+``--with-engine`` puts the engine of ``REV`` on the old side's path too, so the old side is the
+whole old product (issue 11 compares with the code as it was, engine included).
 Results go to ``service_compare.json`` and ``service.md``.
 """
 
@@ -289,13 +291,16 @@ def tree_cpu_seconds(pid: int | None) -> float:
     return sum(stats[p][1] for p in tree if p in stats)
 
 
-def old_server_path(rev: str, work: Path) -> Path:
-    """``hktex_server`` as it was at ``rev`` (``git archive`` of ``server/``), for PYTHONPATH."""
+def old_server_path(rev: str, work: Path, with_engine: bool = False) -> Path:
+    """``hktex_server`` as it was at ``rev`` (``git archive`` of ``server/``), for PYTHONPATH;
+    with ``with_engine`` the engine package of ``rev`` too, so the old side is the whole old
+    product (its query code included), not the old server calling today's engine."""
     repo = Path(__file__).resolve().parents[1]
     dest = work / "old-server"
     dest.mkdir()
+    paths = ["server", "hktex_engine"] if with_engine else ["server"]
     archive = subprocess.run(
-        ["git", "-C", str(repo), "archive", rev, "server"], check=True, capture_output=True
+        ["git", "-C", str(repo), "archive", rev, *paths], check=True, capture_output=True
     ).stdout
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     (dest / "server").rename(dest / "hktex_server")
@@ -310,10 +315,10 @@ def compare(args: argparse.Namespace, command: str) -> int:
     runs = {}
     with tempfile.TemporaryDirectory(prefix="hktex-bench-") as tmp:
         work = Path(tmp)
-        old = old_server_path(args.compare, work)
+        old = old_server_path(args.compare, work, args.with_engine)
         for label, extra in (
             (
-                f"old ({args.compare})",
+                f"old ({args.compare}{' + its engine' if args.with_engine else ''})",
                 {"PYTHONPATH": f"{old}{os.pathsep}" + os.environ.get("PYTHONPATH", "")},
             ),
             ("new (working tree)", {}),
@@ -464,6 +469,11 @@ def main(argv: list[str] | None = None) -> int:
         "--compare", metavar="REV", help="old server code at this git revision vs the current"
     )
     parser.add_argument("--kernels", type=int, default=1200, help="seeded kernels (--compare)")
+    parser.add_argument(
+        "--with-engine",
+        action="store_true",
+        help="--compare: the old side runs the engine of REV too (the whole old product)",
+    )
     args = parser.parse_args(argv)
     command = "python benchmarks/service.py " + shlex.join(
         argv if argv is not None else sys.argv[1:]

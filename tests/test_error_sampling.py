@@ -134,3 +134,21 @@ def test_bad_sampling_settings_are_refused():
         FitParams(sampling_mix=0.0)
     with pytest.raises(ValueError):
         FitParams(sampling_pool=0)
+
+
+def test_cli_sampling_flag_reaches_the_fit(tmp_path, capsys, sphere):  # noqa: F811
+    from hktex_engine.cli import main
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+    from hktex_engine.kernels.hkt import load_hkt
+    from hktex_engine.spectra.grid import write_spectra
+    from tests.test_fit_uv import two_colour_arrays
+
+    _, spectra = sphere
+    obj = write_textured_obj(tmp_path / "m.obj", *two_colour_arrays())
+    sdir = write_spectra(spectra, tmp_path / "spectra")
+    out = tmp_path / "out.hkt"
+    argv = [str(obj), "-o", str(out), "--spectra", str(sdir), "--kernels", "120", "--steps", "3"]
+    argv += ["--eval-points", "300", "--sampling", "error", "--json"]
+    assert main(["fit", *argv]) == 0
+    capsys.readouterr()
+    assert load_hkt(out).fitting["params"]["sampling"] == "error"

@@ -54,6 +54,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"least-squares colour solve after the last step ({d.polish_colors})",
     )
     p.add_argument(
+        "--sampling",
+        choices=("uniform", "error"),
+        default=None,
+        help=f"training points: fresh uniform, or drawn where the error is ({d.sampling})",
+    )
+    p.add_argument(
         "--quantise",
         action="store_true",
         help="write the quantised .hkt (format 2: ~12 B/kernel, measured -0.003 dB)",
@@ -81,6 +87,7 @@ def _params(args: argparse.Namespace) -> FitParams:
             "points_per_step": args.points_per_step,
             "densify": False if args.no_densify else None,
             "polish_colors": args.polish_colors,
+            "sampling": args.sampling,
         }
     )
     if params.kernels < 1 or params.steps < 0 or params.points_per_step < 1:

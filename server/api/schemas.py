@@ -55,6 +55,11 @@ class FitParamsIn(_Strict):
     polish_colors: bool | None = Field(
         None, description="solve the colours by least squares for the final footprints"
     )
+    sampling: Literal["uniform", "error"] | None = Field(
+        None,
+        description="training points: fresh area-uniform ones each step, or drawn from a pool "
+        "in proportion to their residual (weighted so the loss stays the surface mean)",
+    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)
