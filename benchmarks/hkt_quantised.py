@@ -1,10 +1,10 @@
-"""The quantised ``.hkt`` (format version 2) on a fitted kernel set: bytes and fidelity loss.
+"""The quantised ``.hkt`` (format version 3) on a fitted kernel set: bytes and fidelity loss.
 
     python benchmarks/hkt_quantised.py KERNELS.hkt --mesh MESH [--texture IMAGE]
         [--spectra DIR] [--points 60000] [--bits colors=10,threshold=12 ...] [--paper-views]
 
 Reports the kernel set's bytes in every storage form (float32/int64, the compact version-1
-default, the quantised version 2: raw arrays, zip of the members, the file), surface PSNR
+default, the quantised version 3: raw arrays, zip of the members, the file), surface PSNR
 (EVALUATION.md: 60,000 points, seed 0) of the set as read and quantised, the loss when each
 member alone is quantised (which member costs what), and with ``--paper-views`` the paper-view
 scores of both. Writes benchmarks/results/hkt_quantised.json and .md.
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
 def write_md(path: Path, r: dict) -> None:
     n = r["kernels"]
     lines = [
-        "# Quantised .hkt (format version 2)",
+        "# Quantised .hkt (format version 3)",
         "",
         f"Command: `{r['command']}`  ",
         f"Machine: {machine_line(r['machine'])}  ",
@@ -146,7 +146,7 @@ def write_md(path: Path, r: dict) -> None:
     for v in r["quantised"]:
         bits = ", ".join(f"{k} {b}" for k, b in v["bits"].items())
         lines.append(
-            f"| quantised (v2: {bits}) | {v['raw']} | {v['zip_members']} | {v['file']} "
+            f"| quantised (v3: {bits}) | {v['raw']} | {v['zip_members']} | {v['file']} "
             f"| {v['bytes_per_kernel_file']:.2f} | {v['psnr']:.3f} | {v['loss_db']:+.3f} |"
         )
     lines += ["", "Loss when one member alone is quantised (dB), per setting:", ""]

@@ -200,52 +200,117 @@ def test_compact_storage_changes_colours_little(tmp_path):
     assert np.mean(diff > 1 / 255) < 0.01  # only points on the steepest kernel edges move
 
 
-# --------------------------------------------------------------------------- quantised (v2)
+# --------------------------------------------------------------------------- quantised (v2, v3)
+
+
+def _bounds_hold(back, ks, bits):
+    """Each member within half a code step of the original (the maps of hkt.py)."""
+    step = {m: 2 ** bits[m] - 1 for m in bits}
+    # b1, b2 round to the grid k / (2**b - 1) (one may step once more to keep b0 >= 0)
+    assert np.abs(back.barycentrics - ks.barycentrics).max() <= 1.0 / step["barycentrics"] + 1e-12
+    assert back.barycentrics.min() >= 0 and np.allclose(back.barycentrics.sum(1), 1.0)
+    assert np.abs(back.theta - ks.theta).max() <= np.pi / (2 * step["theta"]) + 1e-12
+    assert np.abs(np.log(back.eta / ks.eta)).max() <= np.log(200) / (2 * step["eta"]) + 1e-12
+    assert np.abs(back.threshold - ks.threshold).max() <= 0.7 / 2 ** (bits["threshold"] + 1) + 1e-12
+    assert back.threshold.max() < 1.0
+    log_k = np.abs(np.log(back.sharpness / ks.sharpness)).max()
+    assert log_k <= np.log(20) / (2 * step["sharpness"]) + 1e-12
+    span = np.ptp(ks.colors, axis=0)
+    assert (
+        np.abs(back.colors - ks.colors).max(axis=0) <= span / (2 * step["colors"]) + 1e-12
+    ).all()
 
 
 def test_quantised_round_trip_error_bounds(tmp_path):
-    from hktex_engine.kernels.hkt import QUANT_BITS
+    from hktex_engine.kernels.hkt import QUANT_BITS, sorted_by_face
 
     ks = make_set(n=3000, n_faces=6000)
     path = save_hkt(ks, tmp_path / "q.hkt", quantised=True)
     back = load_hkt(path, expect_mesh_hash="m" * 64, expect_config_hash="c" * 64)
-    s8 = 2**8 - 1
-    assert QUANT_BITS["threshold"] == 10
-    np.testing.assert_array_equal(back.face_ids, ks.face_ids)
-    # b1, b2 round to the grid k / 255 (one of them may step once more to keep b0 >= 0)
-    assert np.abs(back.barycentrics - ks.barycentrics).max() <= 1.0 / s8 + 1e-12
-    assert back.barycentrics.min() >= 0 and np.allclose(back.barycentrics.sum(1), 1.0)
-    assert np.abs(back.theta - ks.theta).max() <= np.pi / (2 * s8) + 1e-12
-    assert np.abs(np.log(back.eta / ks.eta)).max() <= np.log(200) / (2 * s8) + 1e-12
-    assert np.abs(back.threshold - ks.threshold).max() <= 0.7 / 2**11 + 1e-12
-    assert back.threshold.max() < 1.0
-    assert np.abs(np.log(back.sharpness / ks.sharpness)).max() <= np.log(20) / (2 * s8) + 1e-12
-    span = np.ptp(ks.colors, axis=0)
-    assert (np.abs(back.colors - ks.colors).max(axis=0) <= span / (2 * s8) + 1e-12).all()
+    order = np.argsort(ks.face_ids, kind="stable")  # the stored order, computed independently
+    ref = sorted_by_face(ks)
+    np.testing.assert_array_equal(ref.face_ids, ks.face_ids[order])
+    np.testing.assert_array_equal(ref.theta, ks.theta[order])
+    np.testing.assert_array_equal(back.face_ids, ks.face_ids[order])
+    _bounds_hold(back, ref, QUANT_BITS)
     np.testing.assert_allclose(back.base_color, ks.base_color, rtol=1e-7)
     assert (back.color_space, back.fitting, back.extras) == ("linear", ks.fitting, ks.extras)
     with zipfile.ZipFile(path) as zf:
         manifest = json.loads(zf.read("manifest.json"))
-    assert manifest["version"] == 2 and manifest["quantisation"]["face_ids"]["bits"] == 13
+    deltas = np.diff(np.sort(ks.face_ids), prepend=0)
+    assert manifest["version"] == 3
+    assert manifest["quantisation"]["face_ids"] == {
+        "bits": int(deltas.max()).bit_length(),
+        "map": "delta",
+    }
     # the plain format is still written as version 1 (readers of version 1 keep working)
     with zipfile.ZipFile(save_hkt(ks, tmp_path / "p.hkt")) as zf:
         assert json.loads(zf.read("manifest.json"))["version"] == 1
 
 
+def test_sorting_keeps_the_order_within_a_face():
+    from hktex_engine.kernels.hkt import sorted_by_face
+
+    ks = make_set(n=40, n_faces=4)
+    ks.theta[:] = np.arange(40) * 0.05  # a label per kernel
+    out = sorted_by_face(ks)
+    for f in range(4):
+        labels = out.theta[out.face_ids == f]
+        assert (np.diff(labels) > 0).all()  # clones of one face keep their relative order
+
+
+def test_version_2_files_still_read(tmp_path):
+    """A version-2 file (face ids as plain codes, kernels in any order) reads as before."""
+    from hktex_engine.kernels.hkt import pack_codes
+
+    ks = make_set(n=500, n_faces=6000)
+    src = save_hkt(ks, tmp_path / "v3.hkt", quantised=True)
+    v3 = load_hkt(src)
+    shuffle = np.random.default_rng(5).permutation(500)
+    # version 2 of the same (now shuffled) kernels: plain 13-bit face-id codes
+    dst = tmp_path / "v2.hkt"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for info in zin.infolist():
+            data = zin.read(info.filename)
+            if info.filename == "manifest.json":
+                m = json.loads(data)
+                m["version"] = 2
+                m["quantisation"]["face_ids"] = {"bits": 13, "map": "integer"}
+                data = json.dumps(m).encode()
+            elif info.filename == "face_ids.npy":
+                buf = io.BytesIO()
+                np.lib.format.write_array(buf, pack_codes(v3.face_ids, 13))
+                data = buf.getvalue()
+            zout.writestr(info.filename, data)
+    v2 = load_hkt(dst)
+    np.testing.assert_array_equal(v2.face_ids, v3.face_ids)
+    np.testing.assert_array_equal(v2.theta, v3.theta)
+    assert shuffle.shape == (500,)
+    # a version-3 table that claims plain codes (or the reverse) is refused
+    bad = _quantised_manifest_patch(src, tmp_path / "bad.hkt", _set_q("face_ids", "map", "integer"))
+    with pytest.raises(KernelSetError, match="face ids"):
+        load_hkt(bad)
+
+
 def test_quantised_sizes_and_bits_override(tmp_path):
-    ks = make_set(n=4000, n_faces=6000)  # 13-bit face ids (spot has 5,856 faces)
+    from hktex_engine.kernels.hkt import QUANT_BITS
+
+    ks = make_set(n=4000, n_faces=6000)
     q = hkt_bytes(ks, quantised=True)
-    bits_per_kernel = 13 + 2 * 8 + 8 + 8 + 10 + 8 + 3 * 8
-    packed = [13, 16, 8, 8, 10, 8, 24]
-    assert q["raw"] == sum(-(-4000 * b // 8) for b in packed) + 12
-    assert q["raw"] == pytest.approx(4000 * bits_per_kernel / 8 + 12, abs=8)
-    assert q["zip"] / 4000 <= 12.0  # the file itself, headers and manifest included
-    assert q["zip"] < hkt_bytes(ks)["zip"] / 1.8
+    fb = int(np.diff(np.sort(ks.face_ids), prepend=0).max()).bit_length()
+    b = QUANT_BITS
+    packed = [fb, 2 * b["barycentrics"], b["theta"], b["eta"], b["threshold"], b["sharpness"]]
+    packed.append(3 * b["colors"])
+    assert q["raw"] == sum(-(-4000 * bits // 8) for bits in packed) + 12
+    assert q["zip"] / 4000 <= 10.5  # the file itself, headers and manifest included
+    assert q["zip"] < hkt_bytes(ks)["zip"] / 2.0
     wide = hkt_bytes(ks, quantised=True, bits={"colors": 12, "threshold": 14})
-    assert wide["raw"] == q["raw"] + 4000 * (3 * 4 + 4) // 8
+    extra = 3 * (12 - b["colors"]) + (14 - b["threshold"])
+    assert wide["raw"] == q["raw"] + 4000 * extra // 8
     back = load_hkt(save_hkt(ks, tmp_path / "w.hkt", quantised=True, bits={"colors": 12}))
+    ref = ks.colors[np.argsort(ks.face_ids, kind="stable")]
     span = np.ptp(ks.colors, axis=0)
-    assert (np.abs(back.colors - ks.colors).max(axis=0) <= span / (2 * 4095) + 1e-12).all()
+    assert (np.abs(back.colors - ref).max(axis=0) <= span / (2 * 4095) + 1e-12).all()
     for bad in ({"colors": 0}, {"colors": 17}, {"face_ids": 8}, {"nope": 3}):
         with pytest.raises(KernelSetError, match="quantisation width"):
             save_hkt(ks, tmp_path / "bad.hkt", quantised=True, bits=bad)

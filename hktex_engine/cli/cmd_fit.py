@@ -62,7 +62,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quantise",
         action="store_true",
-        help="write the quantised .hkt (format 2: ~12 B/kernel, measured -0.003 dB)",
+        help="write the quantised .hkt (format 3: ~10-11 B/kernel, measured -0.003 dB)",
     )
     p.add_argument("--checkpoint-dir", type=Path, help="resumable fit: checkpoints go here")
     p.add_argument("--eval-points", type=int, default=60_000, help="surface-PSNR sample count")

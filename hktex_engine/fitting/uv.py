@@ -212,7 +212,7 @@ def evaluate_albedo(model: HeatKernelModel, face_ids: np.ndarray, bary: np.ndarr
 
 def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
     """Raw and zip bytes of the kernel set as a ``.hkt`` file (EVALUATION.md 'Bytes'), and
-    of its quantised form (format version 2, ``save_hkt(..., quantised=True)``)."""
+    of its quantised form (format version 3, ``save_hkt(..., quantised=True)``)."""
     from hktex_engine.kernels.hkt import hkt_bytes, save_hkt
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -11,14 +11,15 @@ only narrows dtypes, which a reader gets back as ordinary numbers without scale 
   float16 threshold near 1 (spacing 4.9e-4) would shift responses visibly;
 - ``base_color`` float32.
 
-Quantised storage (``save_hkt(..., quantised=True)``, format version 2) keeps the same member
-names and meanings but stores each per-kernel member as a ``uint8`` array of bit-packed
-integer codes (big-endian bit order, ``np.packbits``), with the codes' meaning in the
-manifest's ``quantisation`` table (see :data:`QUANT_BITS` and docs/kernels.md): face ids in
-the bits their largest id needs, two barycentrics on the simplex grid, ``theta`` linear over
+Quantised storage (``save_hkt(..., quantised=True)``, format version 3; version 2 is read
+too) keeps the same member names and meanings but stores each per-kernel member as a ``uint8``
+array of bit-packed integer codes (big-endian bit order, ``np.packbits``), with the codes'
+meaning in the manifest's ``quantisation`` table (see :data:`QUANT_BITS` and docs/kernels.md):
+the kernels sorted by face id (stably) and the face ids as differences in the bits the largest
+difference needs (version 2: the ids themselves), two barycentrics on the simplex grid, ``theta`` linear over
 ``[0, pi]``, ``eta`` and ``sharpness`` linear in their logarithm, ``threshold`` at cell
 midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
-own range. :func:`load_hkt` reads versions 1 and 2; a version-1 file is written unless
+own range. :func:`load_hkt` reads versions 1, 2 and 3; a version-1 file is written unless
 quantisation is asked for, so older readers keep reading what they read before.
 
 Reading is defensive because a file may come from anyone: members are checked for size before
@@ -28,6 +29,7 @@ shapes, ranges, finiteness and the mesh / spectral-config hashes are checked bef
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -49,10 +51,14 @@ from hktex_engine.kernels.model import (
 )
 
 FORMAT = "hktex-kernels"
-VERSION = 2
+VERSION = 3
 #: The version a plain (unquantised) file is written as; readers of version 1 read it.
 PLAIN_VERSION = 1
-QUANTISED_VERSION = 2
+#: Version 2: quantised members, face ids as plain codes. Version 3 (what is written): the
+#: same, with the kernels sorted by face id (stable) and the face ids stored as differences,
+#: which zip to ~1-3 bits instead of ~13 (measured -1.1 to -1.3 bytes per kernel).
+QUANTISED_V2 = 2
+QUANTISED_VERSION = 3
 #: Members and their columns (0 = a vector). ``base_color`` has 3 entries, not one per kernel.
 MEMBERS: dict[str, int] = {
     "face_ids": 0,
@@ -70,9 +76,11 @@ MAX_KERNELS = 10_000_000
 MAX_MANIFEST_BYTES = 1 << 20
 #: An ``.npy`` header is at most this long for our arrays (format v1 pads to 64-byte blocks).
 NPY_HEADER_BYTES = 4096
-#: Default code widths of the quantised format (face ids: the bits their largest id needs).
-#: Chosen on a fitted spot set (docs/decisions.md): the albedo moves by far less than the
-#: fit's own error, <= 0.1 dB of surface PSNR, at <= 12 bytes per kernel zipped.
+#: Default code widths of the quantised format (face ids: the bits their largest difference
+#: needs). Chosen on fitted sets (docs/decisions.md, benchmarks/results/hkt_quantised*.md):
+#: the quantised albedo stays ~58-60 dB from the exact one, so a fit of up to ~42 dB loses
+#: <= 0.1 dB. Narrower widths (7/6/6/9/5/7: -1.1 bytes per kernel) measured 51.9 dB from the
+#: exact albedo: fine for a 32 dB fit (+0.008 dB), 0.2-0.3 dB on a 40 dB one; ``bits=`` asks.
 QUANT_BITS: dict[str, int] = {
     "barycentrics": 8,
     "theta": 8,
@@ -108,7 +116,7 @@ def save_hkt(
 ) -> Path:
     """Validate and write ``kernelset`` to ``path`` atomically (temporary file + rename).
 
-    ``quantised=True`` writes the version-2 format (``bits`` overrides :data:`QUANT_BITS`
+    ``quantised=True`` writes the version-3 format (``bits`` overrides :data:`QUANT_BITS`
     per member); otherwise version 1, ``compact`` choosing narrow dtypes or float32/int64.
     """
     path = Path(path)
@@ -130,7 +138,8 @@ def hkt_bytes(
 ) -> dict[str, int]:
     """Storage of a kernel set: ``raw`` (sum of the stored arrays) and ``zip`` (the file)."""
     if quantised:
-        arrays, _ = _quantised_arrays(kernelset, _bits(kernelset, bits))
+        ks = sorted_by_face(kernelset)
+        arrays, _ = _quantised_arrays(ks, _bits(ks, bits))
     else:
         arrays = _stored_arrays(kernelset, compact)
     raw = sum(a.nbytes for a in arrays.values())
@@ -149,6 +158,7 @@ def _encode(
         raise KernelSetError(f"color_space must be one of {COLOR_SPACES}")
     extra: dict = {}
     if quantised:
+        kernelset = sorted_by_face(kernelset)
         arrays, extra["quantisation"] = _quantised_arrays(kernelset, _bits(kernelset, bits))
     else:
         arrays = _stored_arrays(kernelset, compact)
@@ -206,7 +216,7 @@ def load_hkt(
         with zipfile.ZipFile(path) as zf:
             manifest = _read_manifest(zf)
             n = manifest["count"]
-            if manifest["version"] == QUANTISED_VERSION:
+            if manifest["version"] in (QUANTISED_V2, QUANTISED_VERSION):
                 arrays = _read_quantised(zf, manifest, n)
             else:
                 arrays = {name: _read_member(zf, name, n, cols) for name, cols in MEMBERS.items()}
@@ -323,8 +333,30 @@ def _bits(ks: KernelSet, bits: dict[str, int] | None) -> dict[str, int]:
         if not isinstance(b, int | np.integer) or not 1 <= int(b) <= 16:
             raise KernelSetError(f"quantisation width of {name!r} must be in [1, 16], not {b!r}")
         out[name] = int(b)
-    out["face_ids"] = max(1, int(np.asarray(ks.face_ids).max()).bit_length())
+    out["face_ids"] = max(1, int(_face_deltas(ks.face_ids).max()).bit_length())
     return out
+
+
+def sorted_by_face(ks: KernelSet) -> KernelSet:
+    """The same kernels ordered by face id, stably (the order a quantised file stores).
+
+    Stable, so kernels of one face (clones among them) keep their relative order; only the
+    kernel-index key of the tie rule (ALGORITHM.md §5) between kernels of different faces
+    changes, and it decides nothing unless their responses and distances are exactly equal.
+    """
+    order = np.argsort(np.asarray(ks.face_ids), kind="stable")
+    if np.array_equal(order, np.arange(order.shape[0])):
+        return ks
+    per_kernel = {
+        name: np.asarray(getattr(ks, name))[order] for name in MEMBERS if name != "base_color"
+    }
+    return dataclasses.replace(ks, **per_kernel)
+
+
+def _face_deltas(face_ids: np.ndarray) -> np.ndarray:
+    """Differences of ascending face ids, the first from 0 (all >= 0)."""
+    f = np.asarray(face_ids, dtype=np.int64)
+    return np.diff(f, prepend=0)
 
 
 def pack_codes(codes: np.ndarray, bits: int) -> np.ndarray:
@@ -385,12 +417,15 @@ def _decode_bary(q: np.ndarray, bits: int) -> np.ndarray:
 
 def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
     """Packed members and the manifest's ``quantisation`` table of a kernel set."""
+    deltas = _face_deltas(ks.face_ids)
+    if (deltas < 0).any():
+        raise KernelSetError("a quantised file stores kernels sorted by face id")
     table: dict[str, dict] = {
-        "face_ids": {"bits": bits["face_ids"], "map": "integer"},
+        "face_ids": {"bits": bits["face_ids"], "map": "delta"},
         "barycentrics": {"bits": bits["barycentrics"], "map": "simplex"},
     }
     arrays = {
-        "face_ids": pack_codes(np.asarray(ks.face_ids, dtype=np.int64), bits["face_ids"]),
+        "face_ids": pack_codes(deltas, bits["face_ids"]),
         "barycentrics": pack_codes(
             _encode_bary(ks.barycentrics, bits["barycentrics"]).T, bits["barycentrics"]
         ),
@@ -417,7 +452,7 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
 
 
 def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np.ndarray]:
-    """Members of a version-2 file, decoded and checked against the manifest's table."""
+    """Members of a version-2 or -3 file, decoded and checked against the manifest's table."""
     table = manifest.get("quantisation")
     if not isinstance(table, dict):
         raise KernelSetError("quantised kernel-set file lacks its quantisation table")
@@ -436,7 +471,12 @@ def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np
         values = 2 if name == "barycentrics" else max(cols, 1)
         codes = unpack_codes(_read_packed(zf, name, n * values * bits), n * values, bits)
         if name == "face_ids":
-            out[name] = codes
+            kind = "delta" if manifest["version"] == QUANTISED_VERSION else "integer"
+            if spec.get("map") != kind:
+                raise KernelSetError(
+                    f"face ids of a version-{manifest['version']} file are {kind!r} codes"
+                )
+            out[name] = np.cumsum(codes) if kind == "delta" else codes
         elif name == "barycentrics":
             q = codes.reshape(2, n).T
             if (q.sum(axis=1) > (1 << bits) - 1).any():
