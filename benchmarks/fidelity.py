@@ -17,7 +17,8 @@ picks the spectra's K for that run). Per mesh and run: a UV fit, then
 - an error map (original | kernel bake | heat map of the error) under ``--pictures``.
 
 Every finished run is appended to ``benchmarks/results/fidelity.jsonl`` at once (a stopped
-session keeps what ran); ``--table`` rewrites ``fidelity.md`` from the JSONL.
+session keeps what ran); ``--table`` rewrites ``fidelity.md`` from the JSONL; ``--rebyte``
+re-measures the quantised bytes of every saved set in the current ``.hkt`` format first.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from hktex_engine.evaluation.diagnostics import edge_flat_split, saturation, tru
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.fitting.uv import evaluate_albedo, fit_uv
 from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.kernels.hkt import QUANTISED_VERSION
 from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.spectra.grid import SpectraCache
 from hktex_engine.spectra.interpolation import SpectralField
@@ -137,6 +139,7 @@ def run_one(
         "bytes_raw": m["bytes_raw"],
         "bytes_zip_quantised": m.get("bytes_zip_quantised"),
         "vertex_colours_equal_bytes": at_equal_bytes(curve, m["bytes_zip"]),
+        "quantised_version": QUANTISED_VERSION,
         "vertex_colours_equal_quantised_bytes": at_equal_bytes(
             curve, m.get("bytes_zip_quantised") or m["bytes_zip"]
         ),
@@ -163,6 +166,28 @@ def run_one(
     return row
 
 
+def rebyte(jsonl: Path) -> None:
+    """Quantised bytes of the saved sets in the current format, and VC at those bytes."""
+    from hktex_engine.kernels.hkt import hkt_bytes, load_hkt
+
+    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    curves: dict[str, list[dict]] = {}
+    for r in rows:
+        path = Path(r.get("hkt") or "")
+        if not path.is_file():
+            continue
+        if r["mesh"] not in curves:
+            obj, tex = MESHES[r["mesh"]]
+            mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+            f, b, target = surface_samples(mesh, 60_000, 0)
+            curves[r["mesh"]] = vertex_colour_curve(mesh, f, b, target)
+        qz = hkt_bytes(load_hkt(path), quantised=True)["zip"]
+        r["bytes_zip_quantised"] = qz
+        r["quantised_version"] = QUANTISED_VERSION
+        r["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curves[r["mesh"]], qz)
+    jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
 def write_table(jsonl: Path, md: Path, command: str) -> None:
     rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
     lines = [
@@ -171,18 +196,32 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
         f"Command(s): `{command}` (appends; this table is every row of fidelity.jsonl).",
         "",
         "| mesh | run | kernels | steps | K | PSNR dB | KB zip | VC equal bytes dB | Δ dB |"
+        " KB quantised | VC at those dB | Δq dB | MLP dB |"
         " before solve | edge share | PSNR edge/flat | sat/pt | >K_c | exp(-tλ_K) | fit s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "---:|---:|",
     ]
     for r in rows:
         vc = r["vertex_colours_equal_bytes"]
+        vq = r.get("vertex_colours_equal_quantised_bytes")
+        qb = r.get("bytes_zip_quantised")
+        mlp = (r.get("mlp_equal_samples") or {}).get("psnr")
         cs = r.get("colour_solve") or {}
         sp = r["split"]
+        quant = (
+            f"| {qb / 1e3:.1f}{'' if r.get('quantised_version') == 3 else ' (v2)'} "
+            f"| {vq['psnr']:.2f}{'*' if vq['extrapolated'] else ''} "
+            f"| {r['surface_psnr'] - vq['psnr']:+.2f} "
+            if qb and vq
+            else "| - | - | - "
+        )
         lines.append(
             f"| {r['mesh']} | `{r['run']}` | {r['kernels']} | {r['steps']} | {r['spectra_k']} "
             f"| {r['surface_psnr']:.2f} | {r['bytes_zip'] / 1e3:.1f} "
             f"| {vc['psnr']:.2f}{'*' if vc['extrapolated'] else ''} "
             f"| {r['surface_psnr'] - vc['psnr']:+.2f} "
+            + quant
+            + f"| {'-' if mlp is None else f'{mlp:.2f}'} "
             f"| {cs.get('surface_psnr_before', float('nan')):.2f} "
             f"| {sp['edge_error_share']:.2f} ({sp['edge_fraction']:.2f} of pts) "
             f"| {sp['psnr_edge']:.1f} / {sp['psnr_flat']:.1f} "
@@ -192,7 +231,10 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
     lines += [
         "",
         "VC equal bytes: vertex colours L0-L3 interpolated in log(bytes) at the kernel set's",
-        "zipped bytes (* = outside L0-L3, extrapolated). Δ = HKTex minus that. 'before solve' is",
+        "zipped bytes (* = outside L0-L3, extrapolated). Δ = HKTex minus that. KB quantised: the",
+        "set as a quantised .hkt (format 3 unless marked v2: rows measured before face ids were",
+        "delta-coded and not re-measured); Δq = HKTex minus vertex colours at those bytes. MLP:",
+        "the positional-encoding MLP trained on the same samples and steps. 'before solve' is",
         "the PSNR before the least-squares colour solve (runs with +polish). edge share: the",
         "fraction of squared error on texture-edge points. sat/pt: candidates with r >= 1 per",
         "point (brute force, 1000 points); >K_c: points with more saturated candidates than K_c.",
@@ -213,10 +255,20 @@ def main() -> int:
     ap.add_argument("--save", type=Path, default=None, help="folder for the fitted .hkt files")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", action="store_true", help="only rewrite fidelity.md")
+    ap.add_argument(
+        "--rebyte",
+        action="store_true",
+        help="re-measure the quantised bytes (current format) of every row whose saved .hkt"
+        " still exists, with vertex colours at those bytes; then rewrite fidelity.md",
+    )
     args = ap.parse_args()
     command = "python benchmarks/fidelity.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     jsonl, md = args.out / "fidelity.jsonl", args.out / "fidelity.md"
     if args.table:
+        write_table(jsonl, md, command)
+        return 0
+    if args.rebyte:
+        rebyte(jsonl)
         write_table(jsonl, md, command)
         return 0
     torch.manual_seed(0)

@@ -123,6 +123,37 @@ def test_record_hits_contributions_and_error_spreading():
     assert np.allclose(ctl.acc["rho_sum"].numpy(), [0.7, 1.25, 0.6, 0.7])
 
 
+def test_record_weights_points_by_their_importance_weights():
+    """Error-sampled points carry 1 / (n q): a point of weight w counts as w points."""
+    v, f = flat_patch(5)
+    model = ToyModel(v, f, np.arange(4), np.full((4, 3), 1 / 3))
+    topk = torch.tensor([[0, 1, -1], [1, 2, 3], [0, 3, 2]])
+    rho = torch.tensor([[0.5, 0.25, 0.0], [1.0, 0.0, 0.5], [0.2, 0.2, 0.6]], dtype=DT)
+    err = torch.tensor([0.3, 0.6, 0.1], dtype=DT)
+    w = torch.tensor([2.0, 1.0, 0.5], dtype=DT)
+    # the same points repeated by their weight (point 2 at half weight: half of everything)
+    weighted, _ = _controller(model, v, f, FlatTracer(v, f))
+    plain, _ = _controller(model, v, f, FlatTracer(v, f))
+    for ctl in (weighted, plain):
+        ctl.step = 19  # both windows open
+    weighted.record(PointStats(err, topk, rho, weights=w))
+    plain.record(PointStats(err[[0, 0, 1]], topk[[0, 0, 1]], rho[[0, 0, 1]]))
+    half, _ = _controller(model, v, f, FlatTracer(v, f))
+    half.step = 19
+    half.record(PointStats(err[[2]], topk[[2]], rho[[2]]))
+    for key in ("hits", "rho_sum", "err_sum", "err_weight"):
+        expect = plain.acc[key] + 0.5 * half.acc[key]
+        assert torch.allclose(weighted.acc[key], expect), key
+    ones, _ = _controller(model, v, f, FlatTracer(v, f))
+    none, _ = _controller(model, v, f, FlatTracer(v, f))
+    for ctl in (ones, none):
+        ctl.step = 19
+    ones.record(PointStats(err, topk, rho, weights=torch.ones(3, dtype=DT)))
+    none.record(PointStats(err, topk, rho))
+    for key in ("hits", "rho_sum", "err_sum", "err_weight"):
+        assert torch.equal(ones.acc[key], none.acc[key]), key
+
+
 def test_split_children_on_a_flat_patch():
     v, f = grid_patch(11, 11, size=2.0)
     tracer = SurfaceTracer(v, f)

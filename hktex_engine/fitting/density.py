@@ -176,20 +176,26 @@ class DensityController:
         idx = stats.topk.reshape(-1)
         rho = stats.rho.detach().to(torch.float64).reshape(stats.topk.shape)
         valid = (stats.topk >= 0) & (rho > 0)
-        flat_valid = valid.reshape(-1)
         safe = idx.clamp_min(0)
+        # importance weights (error sampling): every sum below estimates the uniform one
+        pw = getattr(stats, "weights", None)
+        pw = (
+            torch.ones_like(rho[:, :1])
+            if pw is None
+            else pw.detach().to(torch.float64).reshape(-1, 1)
+        )
         if prune_on:
             self.window_steps["prune"] += 1
-            self.acc["hits"].index_add_(0, safe, flat_valid.to(torch.float64))
-            self.acc["rho_sum"].index_add_(0, safe, (rho * valid).reshape(-1))
+            self.acc["hits"].index_add_(0, safe, (valid * pw).reshape(-1))
+            self.acc["rho_sum"].index_add_(0, safe, (rho * valid * pw).reshape(-1))
         if dens_on:
             self.window_steps["densify"] += 1
             # each point's L1 error spread over its final kernels by normalised contributions
             w = rho * valid
             w = w / w.sum(dim=1, keepdim=True).clamp_min(1e-30)
             err = stats.l1_error.detach().to(torch.float64)[:, None] * w
-            self.acc["err_sum"].index_add_(0, safe, err.reshape(-1))
-            self.acc["err_weight"].index_add_(0, safe, w.reshape(-1))
+            self.acc["err_sum"].index_add_(0, safe, (err * pw).reshape(-1))
+            self.acc["err_weight"].index_add_(0, safe, (w * pw).reshape(-1))
 
     @property
     def n_kernels(self) -> int:

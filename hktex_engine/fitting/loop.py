@@ -52,6 +52,8 @@ class PointStats:
     ``l1_error`` is the mean absolute RGB error per point (P,); ``topk`` the indices of the
     point's final K_c kernels (P, K_c), -1 where fewer exist; ``rho`` their responses (P, K_c).
     ``face_ids``/``bary`` locate the points (ray hits for a renderer) and are optional.
+    ``weights`` (P,): importance weights of points not drawn uniformly (error sampling), so
+    the density statistics stay estimates of the uniform ones; None means 1 each.
     """
 
     l1_error: torch.Tensor
@@ -59,6 +61,7 @@ class PointStats:
     rho: torch.Tensor
     face_ids: torch.Tensor | None = None
     bary: torch.Tensor | None = None
+    weights: torch.Tensor | None = None
 
 
 class Objective(Protocol):

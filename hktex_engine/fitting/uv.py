@@ -129,7 +129,8 @@ class UVObjective:
         if self.sampler is not None:
             self.sampler.update(batch[4], residual.norm(dim=1).cpu().numpy())
         err = residual.abs().mean(dim=1)
-        return loss, PointStats(err, aux["indices"], aux["rho"].detach(), face_ids, bary)
+        stats = PointStats(err, aux["indices"], aux["rho"].detach(), face_ids, bary, weights)
+        return loss, stats
 
     def state_arrays(self) -> dict[str, np.ndarray]:
         """What a checkpoint must keep of the objective (the sampler's scores)."""
