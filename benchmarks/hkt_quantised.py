@@ -25,7 +25,7 @@ from _machine import machine_info, machine_line
 
 from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
 from hktex_engine.geometry.mesh import load_mesh
-from hktex_engine.kernels.hkt import QUANT_BITS, hkt_bytes, load_hkt, save_hkt
+from hktex_engine.kernels.hkt import QUANT_BITS, hkt_bytes, load_hkt, save_hkt, sorted_by_face
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.spectra.grid import load_spectra
 
@@ -60,7 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     mesh = load_mesh(args.mesh, texture=args.texture)
     spectra = load_spectra(args.spectra)
-    ks = load_hkt(args.hkt, spectra.mesh_hash, spectra.config_hash)
+    # in the order a quantised file stores (sorted by face), so one member of the quantised
+    # set can replace the exact one row for row (the albedo does not depend on the order)
+    ks = sorted_by_face(load_hkt(args.hkt, spectra.mesh_hash, spectra.config_hash))
     n = len(ks)
     f, b, target = surface_samples(mesh, args.points, 0)
 
