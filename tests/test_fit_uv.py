@@ -241,6 +241,44 @@ def test_presets_are_the_two_configurations_of_algorithm_md():
         fit_preset("nope")
 
 
+def test_spectra_k_follows_the_preset(monkeypatch, tmp_path):
+    """K = 64 by default (measured enough at t = 0.06245); the earlier regime asks for 256."""
+    from hktex_engine.cli import cmd_fit
+    from hktex_engine.config import SpectralConfig, spectra_k_for
+
+    assert SpectralConfig().k == 64
+    assert spectra_k_for(None) == spectra_k_for("default") == spectra_k_for("later") == 64
+    assert spectra_k_for("earlier") == 256
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    class Cache:
+        def __init__(self, root):
+            pass
+
+        def get_or_compute(self, mesh, config, progress=None):
+            seen.append(config.k)
+            raise Stop
+
+    monkeypatch.setattr("hktex_engine.spectra.grid.SpectraCache", Cache)
+    obj = tmp_path / "m.obj"
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+
+    write_textured_obj(obj, *two_colour_arrays())
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    cmd_fit.register(sub)
+    for extra, expect in (([], 64), (["--preset", "earlier"], 256), (["--k", "32"], 32)):
+        args = parser.parse_args(["fit", str(obj), "-o", str(tmp_path / "o.hkt"), *extra])
+        with pytest.raises(Stop):
+            cmd_fit.run(args)
+        assert seen[-1] == expect
+
+
 def test_loss_reductions_differ_by_the_channel_count():
     import torch
 

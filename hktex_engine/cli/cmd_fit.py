@@ -7,7 +7,15 @@ import os
 import time
 from pathlib import Path
 
-from hktex_engine.config import DEFAULT_PRESET, PRESETS, FitParams, SpectralConfig, fit_params_from
+from hktex_engine.config import (
+    DEFAULT_PRESET,
+    PRESET_SPECTRA_K,
+    PRESETS,
+    FitParams,
+    SpectralConfig,
+    fit_params_from,
+    spectra_k_for,
+)
 
 #: where computed spectra are cached when --spectra is not given (override: HKTEX_CACHE_DIR)
 DEFAULT_CACHE = Path(os.environ.get("HKTEX_CACHE_DIR", Path.home() / ".cache" / "hktex"))
@@ -71,7 +79,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--anisotropies", type=_floats, default=s.anisotropies, help="spectra: eta nodes, a,b,c"
     )
-    p.add_argument("--k", type=int, default=s.k, help="spectra: eigenpairs per node")
+    p.add_argument(
+        "--k",
+        type=int,
+        default=None,
+        help=f"spectra: eigenpairs per node (default {s.k}; {PRESET_SPECTRA_K} for those presets)",
+    )
     p.add_argument("--k-iso", type=int, default=s.k_iso, help="spectra: isotropic eigenpairs")
     p.set_defaults(func=run)
 
@@ -118,7 +131,10 @@ def run(args: argparse.Namespace) -> dict:
         spectra = load_spectra(args.spectra, expect_mesh_hash=mesh.content_hash)
     else:
         config = SpectralConfig(
-            angles=args.angles, anisotropies=args.anisotropies, k=args.k, k_iso=args.k_iso
+            angles=args.angles,
+            anisotropies=args.anisotropies,
+            k=args.k if args.k is not None else spectra_k_for(args.preset),
+            k_iso=args.k_iso,
         )
         bar = TerminalProgress("spectra")
         try:
