@@ -29,9 +29,8 @@ from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.baselines import VertexColorBaseline
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.evaluation.paper_views import PaperViews, kernelset_albedo_fn
-from hktex_engine.fitting.uv import kernelset_bytes
 from hktex_engine.geometry.mesh import load_mesh
-from hktex_engine.kernels.hkt import load_hkt
+from hktex_engine.kernels.hkt import QUANTISED_VERSION, hkt_bytes, load_hkt
 from hktex_engine.spectra.grid import SpectraCache
 
 SCORES = ("psnr_all", "psnr_mesh", "ssim_all", "ssim_mesh")
@@ -56,8 +55,7 @@ def score_set(name, mesh, views, curve, path: Path, cache: SpectraCache, k: int)
     spectra = cache.get_or_compute(mesh, SpectralConfig(angles=7, k=k))
     t0 = time.perf_counter()
     s = views.score(kernelset_albedo_fn(spectra, ks))
-    nbytes = kernelset_bytes(ks)
-    qz = nbytes["zip_quantised"]
+    qz = hkt_bytes(ks, quantised=True)["zip"]
     ef, eb, target = surface_samples(mesh, 60_000, 0)
     surface = psnr(kernelset_albedo_fn(spectra, ks)(ef, eb), target)
     return {
@@ -66,6 +64,7 @@ def score_set(name, mesh, views, curve, path: Path, cache: SpectraCache, k: int)
         "kernels": len(ks),
         "surface_psnr": surface,
         "bytes_zip_quantised": qz,
+        "quantised_version": QUANTISED_VERSION,
         **{f"view_{k}": s[k] for k in SCORES},
         "vc_equal_bytes": {k: curve_at(curve, k, qz) for k in ("psnr_all", "psnr_mesh")},
         "vc_twice_bytes": {k: curve_at(curve, k, 2 * qz) for k in ("psnr_all", "psnr_mesh")},
@@ -73,6 +72,19 @@ def score_set(name, mesh, views, curve, path: Path, cache: SpectraCache, k: int)
         "render_s": s["render_s"],
         "score_s": time.perf_counter() - t0,
     }
+
+
+def rebyte(jsonl: Path) -> None:
+    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    for r in rows:
+        if not Path(r["hkt"]).is_file():
+            continue
+        qz = hkt_bytes(load_hkt(r["hkt"]), quantised=True)["zip"]
+        r["bytes_zip_quantised"] = qz
+        r["quantised_version"] = QUANTISED_VERSION
+        for key, factor in (("vc_equal_bytes", 1), ("vc_twice_bytes", 2)):
+            r[key] = {k: curve_at(r["vc_curve"], k, factor * qz) for k in ("psnr_all", "psnr_mesh")}
+    jsonl.write_text("".join(json.dumps(r, default=float) + "\n" for r in rows))
 
 
 def write_table(jsonl: Path, md: Path) -> None:
@@ -115,7 +127,18 @@ def main() -> int:
     ap.add_argument("--k", type=int, default=64, help="spectra K the sets were fitted on")
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hktex" / "spectra")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument(
+        "--rebyte",
+        action="store_true",
+        help="only re-measure every row's quantised bytes (current .hkt format) and the vertex"
+        " colours at 1x/2x those bytes from its stored curve, then rewrite the table",
+    )
     args = ap.parse_args()
+    jsonl, md = args.out / "fidelity_views.jsonl", args.out / "fidelity_views.md"
+    if args.rebyte:
+        rebyte(jsonl)
+        write_table(jsonl, md)
+        return 0
     command = "python benchmarks/fidelity_views.py " + " ".join(
         shlex.quote(a) for a in sys.argv[1:]
     )
@@ -124,7 +147,6 @@ def main() -> int:
     views = PaperViews(mesh)
     curve = vc_view_curve(mesh, views)
     print(args.mesh, "vertex colours (paper views)", curve, flush=True)
-    jsonl, md = args.out / "fidelity_views.jsonl", args.out / "fidelity_views.md"
     cache = SpectraCache(args.cache)
     for path in args.hkt:
         row = score_set(args.mesh, mesh, views, curve, path, cache, args.k)
