@@ -24,6 +24,7 @@ re-measures the quantised bytes of every saved set in the current ``.hkt`` forma
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shlex
 import sys
@@ -153,7 +154,10 @@ def run_one(
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
     }
-    safe = "".join(c if c.isalnum() else "_" for c in label)[:60]
+    # readable prefix + a digest of the whole label: two runs whose labels share their first
+    # 60 characters once overwrote each other's saved set
+    digest = hashlib.sha1(label.encode()).hexdigest()[:8]
+    safe = "".join(c if c.isalnum() else "_" for c in label)[:48] + "_" + digest
     if save is not None:
         from hktex_engine.kernels.hkt import save_hkt
 
