@@ -231,11 +231,11 @@ PRESETS: dict[str, FitParams] = {
 }
 
 
-PRESETS["default"] = replace(PRESETS["later"], polish_colors=True)
+PRESETS["default"] = replace(PRESETS["later"], polish_colors=True, sampling="error")
 
 #: The preset a fit starts from when none is named: ``"default"``, the authors' later
-#: configuration plus the least-squares colour solve, chosen by measurement
-#: (docs/fitting.md, "Choosing the defaults"; benchmarks/results/fidelity.md).
+#: configuration plus the least-squares colour solve and error-driven training points, chosen
+#: by measurement (docs/fitting.md, "Choosing the defaults"; benchmarks/results/fidelity.md).
 DEFAULT_PRESET = "default"
 
 

@@ -49,7 +49,8 @@ class FitParamsIn(_Strict):
 
     preset: Literal["default", "earlier", "later"] | None = Field(
         None,
-        description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve);"
+        description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
+        " + error sampling);"
         " the other fields override it",
     )
     polish_colors: bool | None = Field(
