@@ -41,7 +41,9 @@ def select_by_rule(
     if k == c:
         sel = torch.ones_like(primary, dtype=torch.bool)
     else:
-        kth = torch.topk(primary, k, dim=1).values[:, k - 1 : k]
+        # the k-th best value is the least of the k best, whatever their order: an unsorted
+        # topk finds it 1.5-1.6x faster on the CPU (measured on 5000 x 300, k = 100)
+        kth = torch.topk(primary, k, dim=1, sorted=False).values.amin(dim=1, keepdim=True)
         sel = _take_ties(primary, kth, secondary, kid, k)
     pos = torch.nonzero(sel)[:, 1].view(p, k)
     if ordered:
