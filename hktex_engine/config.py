@@ -132,7 +132,8 @@ class FitParams:
     colours exactly by least squares for the final footprints after the last step
     (the albedo is linear in them; ``fitting/colour_solve.py``). ``sampling`` picks the
     training points: ``"uniform"`` draws fresh area-uniform points every step; ``"error"``
-    draws from a fixed pool of ``sampling_pool`` area-uniform points, a share ``sampling_mix``
+    draws from a fixed pool of ``sampling_pool`` area-uniform points (at most the fit's
+    steps x points per step), a share ``sampling_mix``
     uniformly and the rest in proportion to each point's last residual (after the first
     ``sampling_warmup`` fraction of the steps, uniform until then), weighted so the loss stays
     the surface mean (``fitting/error_sampling.py``).

@@ -191,3 +191,19 @@ class ToyObjective:
         loss = torch.nn.functional.smooth_l1_loss(pred, target, beta=1.0)
         err = (pred - target).abs().mean(1)
         return loss, PointStats(err.detach(), idx, rho.detach(), fid, b)
+
+
+class StopAfter:
+    """A Progress that asks the loop to stop once it has been polled ``polls`` times (the loop
+    polls before every step, so the fit cancels before step ``polls``, 0-based)."""
+
+    def __init__(self, polls: int) -> None:
+        self.polls = polls
+        self.calls = 0
+
+    def update(self, step, total, **metrics) -> None:
+        return None
+
+    def should_stop(self) -> bool:
+        self.calls += 1
+        return self.calls > self.polls

@@ -11,6 +11,7 @@ from hktex_engine.errors import Cancelled
 from hktex_engine.fitting.error_sampling import ErrorSampler
 from hktex_engine.fitting.loop import latest_checkpoint
 from hktex_engine.fitting.uv import fit_uv, point_loss
+from tests.fitting_standins import StopAfter
 from tests.test_fit_uv import sphere, two_colour_sphere  # noqa: F401  (fixture)
 
 
@@ -88,18 +89,8 @@ def test_error_sampled_fit_learns_and_resumes_exactly(sphere, tmp_path):  # noqa
     )
     a = fit_uv(mesh, spectra, p, eval_points=500)
 
-    class StopAfter:
-        calls = 0
-
-        def update(self, step, total, **metrics):
-            pass
-
-        def should_stop(self):
-            StopAfter.calls += 1
-            return StopAfter.calls > 6
-
     with pytest.raises(Cancelled):
-        fit_uv(mesh, spectra, p, StopAfter(), checkpoint_dir=tmp_path, eval_points=500)
+        fit_uv(mesh, spectra, p, StopAfter(6), checkpoint_dir=tmp_path, eval_points=500)
     assert latest_checkpoint(tmp_path).name == "step-000000006"
     c = fit_uv(mesh, spectra, p, checkpoint_dir=tmp_path, eval_points=500)
     assert c.metrics["resumed_from"] == 6

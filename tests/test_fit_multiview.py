@@ -8,6 +8,7 @@ import torch
 
 from hktex_engine.errors import Cancelled, SpectraError
 from tests.demo_support import DEMO_CONFIG, demo_arrays, require_render
+from tests.fitting_standins import StopAfter
 
 pytestmark = pytest.mark.mitsuba
 
@@ -146,18 +147,9 @@ def test_resume_from_checkpoint_reproduces_the_fit(setup, tmp_path):
     whole = fit_multiview(mesh, spectra, train, params, options=opts)
     ckpt = tmp_path / "ckpt"
 
-    class StopAfterTwo:  # cancels the fit before its third step; the loop checkpoints then
-        calls = 0
-
-        def update(self, step, total, **metrics):
-            return None
-
-        def should_stop(self):
-            self.calls += 1
-            return self.calls > 2
-
     with pytest.raises(Cancelled):
-        fit_multiview(mesh, spectra, train, params, StopAfterTwo(), ckpt, options=opts)
+        # cancels before the third step; the loop checkpoints then
+        fit_multiview(mesh, spectra, train, params, StopAfter(2), ckpt, options=opts)
     resumed = fit_multiview(mesh, spectra, train, params, options=opts, checkpoint_dir=ckpt)
     assert resumed.metrics["resumed_from"] == 2
     assert np.allclose(resumed.kernelset.colors, whole.kernelset.colors, atol=1e-5)

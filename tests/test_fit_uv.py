@@ -20,6 +20,7 @@ from hktex_engine.geometry.sampling import (
     uv_at,
 )
 from hktex_engine.spectra.grid import compute_spectra
+from tests.fitting_standins import StopAfter
 
 TINY = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
 SLOW_PSNR = 19.0  # measured 21.2 dB (2026-11-22, 300 steps, 13 density events)
@@ -87,18 +88,8 @@ def test_same_seed_same_kernels_and_cancel_resume_matches(sphere, tmp_path):
     for name in ("face_ids", "barycentrics", "theta", "eta", "threshold", "colors", "base_color"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
 
-    class StopAfter:
-        calls = 0
-
-        def update(self, step, total, **metrics):
-            pass
-
-        def should_stop(self):
-            StopAfter.calls += 1
-            return StopAfter.calls > 6  # stop before step 6 (0-based)
-
     with pytest.raises(Cancelled):
-        fit_uv(mesh, spectra, p, StopAfter(), checkpoint_dir=tmp_path, eval_points=500)
+        fit_uv(mesh, spectra, p, StopAfter(6), checkpoint_dir=tmp_path, eval_points=500)
     assert latest_checkpoint(tmp_path).name == "step-000000006"
     c = fit_uv(mesh, spectra, p, checkpoint_dir=tmp_path, eval_points=500)
     assert c.metrics["resumed_from"] == 6

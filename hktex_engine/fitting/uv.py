@@ -103,9 +103,10 @@ class UVObjective:
         if self.params.sampling == "error":
             # its own stream, so the pool does not shift the loop's draws (resume replays them)
             pool_rng = np.random.default_rng([self.params.seed, POOL_STREAM])
-            self.sampler = ErrorSampler(
-                mesh, self.params.sampling_pool, self.params.sampling_mix, pool_rng
-            )
+            # never more points than the fit will draw: the rest could only ever score unseen
+            draws = max(1, self.params.steps) * self.n_points
+            pool = min(self.params.sampling_pool, draws)
+            self.sampler = ErrorSampler(mesh, pool, self.params.sampling_mix, pool_rng)
         self.warmup_steps = int(round(self.params.sampling_warmup * self.params.steps))
 
     def sample(self, step: int, rng: np.random.Generator):
