@@ -21,7 +21,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from _machine import machine_info, machine_line
 from fidelity import DATA, MESHES, RESULTS, at_equal_bytes
 
@@ -161,5 +160,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    np.seterr(all="ignore")
     sys.exit(main())

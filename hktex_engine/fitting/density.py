@@ -178,11 +178,10 @@ class DensityController:
         valid = (stats.topk >= 0) & (rho > 0)
         safe = idx.clamp_min(0)
         # importance weights (error sampling): every sum below estimates the uniform one
-        pw = getattr(stats, "weights", None)
         pw = (
             torch.ones_like(rho[:, :1])
-            if pw is None
-            else pw.detach().to(torch.float64).reshape(-1, 1)
+            if stats.weights is None
+            else stats.weights.detach().to(torch.float64).reshape(-1, 1)
         )
         if prune_on:
             self.window_steps["prune"] += 1
