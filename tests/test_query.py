@@ -114,7 +114,8 @@ def test_refuses_a_kernel_set_of_another_mesh(spectra, kernelset):
 
 
 class _LargestTensor(TorchDispatchMode):
-    """Records the largest tensor any torch operation produces."""
+    """Records the largest tensor any torch operation produces (views of an input, such as
+    the ``detach`` behind ``Tensor.numpy``, allocate nothing and are not counted)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -122,8 +123,10 @@ class _LargestTensor(TorchDispatchMode):
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         out = func(*args, **(kwargs or {}))
+        inputs = [a for a in (*args, *(kwargs or {}).values()) if isinstance(a, torch.Tensor)]
+        storages = {a.untyped_storage().data_ptr() for a in inputs}
         for t in out if isinstance(out, tuple | list) else (out,):
-            if isinstance(t, torch.Tensor):
+            if isinstance(t, torch.Tensor) and t.untyped_storage().data_ptr() not in storages:
                 self.largest = max(self.largest, t.numel() * t.element_size())
         return out
 

@@ -29,6 +29,7 @@ from torch import nn
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
+from hktex_engine.kernels import fused_blend
 from hktex_engine.kernels.knn import CandidateSearch
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
 from hktex_engine.kernels.tables import (
@@ -476,12 +477,20 @@ class HeatKernelModel(nn.Module):
         else:
             faces = torch.unique(face_ids)
             ft = face_tables(self.field, tables, faces, min(self.config.k_search, n_k))
+        k_s = min(self.config.k_search, n_k)
+        if fused_blend.available(self.field.device, self.colors.dtype):
+            _, norm, _, _, _ = self._terms
+            args = (norm, self.threshold, self.sharpness, self.colors, self.base_color)
+            cfg = self.config
+            out, kid, rho = fused_blend.blend(
+                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend
+            )
+            return (out, {"indices": kid, "rho": rho}) if return_aux else out
         row, kid, d2 = point_distances(ft, face_ids, bary)
         # exact K_s cut first (distance, then kernel id; padding gets distinct ids above every
         # kernel's, the rule needs unique ids per row), then responses of those only
         pad_ids = n_k + torch.arange(kid.shape[1], device=kid.device).expand_as(kid)
         tie_id = torch.where(kid < n_k, kid, pad_ids)
-        k_s = min(self.config.k_search, n_k)
         pos = nearest_by_rule(d2, tie_id, k_s)
         d2, kid = d2.gather(1, pos), kid.gather(1, pos)
         h = point_responses(ft, row, pos, bary)

@@ -315,6 +315,9 @@ def main(conn: Any, threads: int, cache_size: int, recycle_bytes: int, nice: int
         faiss.omp_set_num_threads(max(1, threads))
     except Exception:  # noqa: BLE001 - faiss is optional (torch KNN fallback)
         pass
+    from hktex_engine.kernels import fused_blend
+
+    fused_blend.warm()  # built in the forkserver already (compute_preload): milliseconds here
     worker = Worker(cache_size)
     while True:
         try:

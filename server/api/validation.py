@@ -55,6 +55,7 @@ PRELOAD = [
     "torch",
     "faiss",  # imported lazily by the KNN and by set_thread_counts: 0.8 s each time otherwise
     "hktex_engine.kernels.query",
+    "hktex_server.api.compute_preload",  # the compiled blend, built once for every worker
     "hktex_server.api.compute_child",
     "hktex_server.jobs.worker_main",
     "hktex_server.jobs.tasks",

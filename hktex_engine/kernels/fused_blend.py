@@ -1,0 +1,276 @@
+"""The no-grad blend of ALGORITHM.md section 5 from face tables, compiled, one pass per point.
+
+Why hand-written: the torch path (``HeatKernelModel._blend_tables``) spends its time in a
+dozen full passes over ``(P, L)`` candidate arrays (strided gathers, two ``topk`` and the tie
+bookkeeping around them), each a trip through memory for a few flops; on the CPU that is
+~20 us per point where the arithmetic is ~1 us. No library fuses a top-k under a custom tie
+rule with the heat-kernel response, so this module does it in one compiled loop per point
+(numba, ``nogil``: threads split the points).
+
+Same mathematics, same rule, the same floating-point operations in the same order as the
+torch path for every quantity that decides a ranking (the squared distances bit for bit, the
+responses in float32), so the chosen candidates are identical; colours agree to float32
+round-off (``exp``/``sigmoid`` may differ by an ulp between the two libraries).
+Only the CPU float32 path uses it; CUDA and other dtypes keep the torch path.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+#: numba is imported on first use (its import costs ~0.5-1 s that a CLI call should not pay).
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+log = logging.getLogger("hktex.kernels")
+
+#: ``HKTEX_FUSED_BLEND=0`` turns the compiled path off (the torch path answers).
+ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
+#: Below this many points one thread does the whole call (thread start-up would dominate).
+THREAD_MIN_POINTS = 2048
+
+
+def available(device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether the compiled blend can answer for a model on ``device`` in ``dtype``."""
+    return ENABLED and HAVE_NUMBA and device.type == "cpu" and dtype == torch.float32
+
+
+def _unit(v):
+    """``v`` (float32) clamped to [0, 1]."""
+    return max(min(v, np.float32(1.0)), np.float32(0.0))
+
+
+def _select(a, n, k):
+    """The ``k``-th smallest (0-based) of ``a[:n]``, reordering ``a`` in place (Hoare's
+    quickselect, middle pivot; ``np.partition`` would allocate a copy per point)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+def _blend_points(
+    rows, bary, kid_t, h_t, d2_t, edge2, count, norm, thr, sharp, low, high,
+    colors, base, scale, k_s, k_c, out, out_kid, out_rho,
+):  # fmt: skip
+    """Colours ``out[p]`` for points ``p`` at face-table rows ``rows`` (see :func:`blend`),
+    and the blended kernels ``out_kid[p]`` with their ``out_rho[p]`` in rule order."""
+    width = kid_t.shape[1]
+    n_kernels = norm.shape[0]
+    d2 = np.empty(width, np.float64)
+    part = np.empty(width, np.float64)
+    pos = np.empty(width, np.int64)
+    cd2 = np.empty(width, np.float64)
+    rho = np.empty(width, np.float32)
+    top = np.empty(k_c, np.int64)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    for p in range(rows.shape[0]):
+        r = rows[p]
+        c0, c1, c2 = bary[p, 0], bary[p, 1], bary[p, 2]  # float32
+        b0, b1, b2 = np.float64(c0), np.float64(c1), np.float64(c2)
+        n = count[r]
+        # exact squared embedding distance, in tables.point_distances' order of operations
+        quad = b0 * b1 * edge2[r, 0] + b0 * b2 * edge2[r, 1]
+        quad = quad + b1 * b2 * edge2[r, 2]
+        for j in range(n):
+            v = d2_t[r, j, 0] * b0 + d2_t[r, j, 1] * b1 + d2_t[r, j, 2] * b2
+            v = v - quad
+            d2[j] = v if v > 0.0 else 0.0
+        # K_s cut: the k_s smallest distances, ties by kernel id (row order is kernel order)
+        m = k_s if k_s < n else n
+        if m < n:
+            part[:n] = d2[:n]
+            kth = _select(part, n, m - 1)
+            less = 0
+            for j in range(n):
+                if d2[j] < kth:
+                    less += 1
+            ties = m - less
+            taken = 0
+            for j in range(n):
+                v = d2[j]
+                if v < kth or (v == kth and ties > 0):
+                    if v == kth:
+                        ties -= 1
+                    pos[taken] = j
+                    taken += 1
+        else:
+            for j in range(n):
+                pos[j] = j
+        # responses and footprints of the cut, as _blend_tables computes them in float32
+        for i in range(m):
+            j = pos[i]
+            k = kid_t[r, j]
+            h = h_t[r, j, 0] * c0 + h_t[r, j, 1] * c1 + h_t[r, j, 2] * c2
+            w = np.float32(math.exp(-d2[j] / scale))
+            x = h * w / norm[k]
+            s = one / (one + np.float32(math.exp(-(sharp[k] * (x - thr[k])))))
+            v = (s - low[k]) / (high[k] - low[k])
+            rho[i] = _unit(v)
+            cd2[i] = d2[j]
+        # K_c choice: largest rho, then smallest distance, then kernel id (a sorted buffer)
+        q = k_c if k_c < m else m
+        filled = 0
+        for i in range(m):
+            if filled == q:
+                w_ = top[q - 1]
+                if not (
+                    rho[i] > rho[w_] or (rho[i] == rho[w_] and cd2[i] < cd2[w_])
+                ):  # later entries lose exact ties (their kernel id is larger)
+                    continue
+                slot = q - 1
+            else:
+                slot = filled
+                filled += 1
+            while slot > 0:
+                a = top[slot - 1]
+                if rho[i] > rho[a] or (rho[i] == rho[a] and cd2[i] < cd2[a]):
+                    top[slot] = a
+                    slot -= 1
+                else:
+                    break
+            top[slot] = i
+        acc0 = zero
+        acc1 = zero
+        acc2 = zero
+        total = zero
+        for t in range(q, k_c):  # fewer candidates than K_c: padding, as the torch path
+            out_kid[p, t] = n_kernels
+            out_rho[p, t] = zero
+        for t in range(q):
+            i = top[t]
+            k = kid_t[r, pos[i]]
+            out_kid[p, t] = k
+            out_rho[p, t] = rho[i]
+            acc0 += rho[i] * colors[k, 0]
+            acc1 += rho[i] * colors[k, 1]
+            acc2 += rho[i] * colors[k, 2]
+            total += rho[i]
+        denom = total if total > one else one
+        out[p, 0] = _unit(base[0] + acc0 / denom)
+        out[p, 1] = _unit(base[1] + acc1 / denom)
+        out[p, 2] = _unit(base[2] + acc2 / denom)
+
+
+_COMPILED = None
+_COMPILING = threading.Lock()
+
+
+def _kernel():
+    """The compiled ``_blend_points`` (built on first use; numba's disk cache makes later
+    processes load it in well under a second)."""
+    global _COMPILED, _select, _unit
+    with _COMPILING:
+        if _COMPILED is None:
+            import numba
+
+            _unit = numba.njit(inline="always")(_unit)
+            _select = numba.njit(_select)
+            try:  # numba's on-disk cache (next to this file, or the user's cache directory)
+                _COMPILED = numba.njit(nogil=True, cache=True)(_blend_points)
+            except RuntimeError:  # no writable cache location: compile in each process
+                _COMPILED = numba.njit(nogil=True)(_blend_points)
+    return _COMPILED
+
+
+def _array(t: torch.Tensor) -> np.ndarray:
+    """A C-contiguous numpy view of a CPU tensor (a copy only when it is not contiguous)."""
+    return t.numpy() if t.is_contiguous() else np.ascontiguousarray(t.numpy())
+
+
+def blend(
+    ft,
+    face_ids: torch.Tensor,
+    bary: torch.Tensor,
+    norm: torch.Tensor,
+    threshold: torch.Tensor,
+    sharpness: torch.Tensor,
+    colors: torch.Tensor,
+    base_color: torch.Tensor,
+    sigma_b: float,
+    k_s: int,
+    k_c: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(albedo (P, 3), kernel ids (P, K_c), rho (P, K_c))`` at points ``(face_ids, bary)``
+    from face tables ``ft`` (``kernels.tables.FaceTables`` covering their faces), the blended
+    kernels in rule order; in threads over chunks of points."""
+    rows = ft.rows[face_ids].numpy()
+    # per-kernel ends of the soft step, by soft_step's own torch expressions (same bits)
+    low = torch.sigmoid(-sharpness * threshold)
+    high = torch.sigmoid(sharpness * (1 - threshold))
+    # tables hold no graph (views, not copies: they may be the whole mesh's); the kernels'
+    # attributes may be Parameters (detached: a view, nothing copied)
+    tables = [_array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
+    attrs = [_array(t.detach()) for t in (norm, threshold, sharpness, low, high, colors)]
+    args = [*tables, *attrs, _array(base_color.detach())]
+    b = _array(bary.detach().to(torch.float32))
+    scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
+    n = rows.shape[0]
+    k_c = min(k_c, k_s)
+    out = np.empty((n, 3), dtype=np.float32)
+    out_kid = np.empty((n, k_c), dtype=np.int64)
+    out_rho = np.empty((n, k_c), dtype=np.float32)
+    threads = max(1, min(torch.get_num_threads(), n // THREAD_MIN_POINTS))
+
+    kernel = _kernel()
+
+    def run(sl: slice) -> None:
+        kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl])
+
+    if threads == 1:
+        run(slice(0, n))
+    else:
+        bounds = np.linspace(0, n, threads + 1).astype(int)
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(run, [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]))
+    return torch.from_numpy(out), torch.from_numpy(out_kid), torch.from_numpy(out_rho)
+
+
+def warm() -> None:
+    """Compile (or load from numba's on-disk cache) the blend now, on a one-point problem of
+    the real argument types, so a service's first query does not pay it (seconds)."""
+    global ENABLED
+    if not HAVE_NUMBA or not ENABLED:
+        return
+    from types import SimpleNamespace
+
+    f32, f64, i64 = torch.float32, torch.float64, torch.long
+    ft = SimpleNamespace(
+        rows=torch.zeros(1, dtype=i64),
+        kid=torch.zeros((1, 1), dtype=i64),
+        h=torch.ones((1, 1, 3), dtype=f32),
+        d2=torch.zeros((1, 1, 3), dtype=f64),
+        edge2=torch.zeros((1, 3), dtype=f64),
+        count=torch.ones(1, dtype=i64),
+    )
+    one = torch.ones(1, dtype=f32)
+    bary = torch.full((1, 3), 1.0 / 3.0, dtype=f32)
+    try:
+        blend(ft, torch.zeros(1, dtype=i64), bary, one, one / 2, one * 10, torch.zeros((1, 3)), one.expand(3), 0.1, 1, 1)  # fmt: skip
+    except Exception:  # noqa: BLE001 - a compiler that fails here would fail every query
+        log.exception("the compiled blend failed to build; the torch path answers instead")
+        ENABLED = False

@@ -1,0 +1,78 @@
+"""The compiled no-grad blend (kernels.fused_blend) against the torch path it replaces on the
+CPU: the same kernels chosen under the tie rule, colours to float32 round-off, in one thread
+and split across threads. The tie cases themselves are in tests/test_ties.py (their float32
+table-path tests run through this code)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from hktex_engine.config import KernelConfig
+from hktex_engine.kernels import fused_blend
+from hktex_engine.kernels import model as kernels_mod
+from hktex_engine.spectra.interpolation import SpectralField
+from tests.kernels_support import tiny_spectra
+from tests.test_kernels import make_model, make_params
+
+pytestmark = pytest.mark.skipif(not fused_blend.HAVE_NUMBA, reason="numba is not installed")
+
+CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=16, k_blend=5)
+
+
+@pytest.fixture(scope="module")
+def spectra3():
+    return tiny_spectra(3)
+
+
+def _both_paths(model, f, b, monkeypatch):
+    results = {}
+    for enabled in (False, True):
+        monkeypatch.setattr(fused_blend, "ENABLED", enabled)
+        with torch.no_grad():
+            results[enabled] = model.albedo(f, b, return_aux=True)
+    return results[False], results[True]
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_equals_the_torch_path(spectra3, monkeypatch, threads):
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "always")
+    monkeypatch.setattr(fused_blend, "THREAD_MIN_POINTS", 500)
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float32)
+    model = make_model(field, make_params(spectra3, 300, seed=21), CONFIG)
+    rng = np.random.default_rng(5)
+    n = 4000
+    f, b = rng.integers(0, spectra3.faces.shape[0], n), rng.dirichlet(np.ones(3), n)
+    old = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        (ref, ref_aux), (got, aux) = _both_paths(model, f, b, monkeypatch)
+    finally:
+        torch.set_num_threads(old)
+    assert got.dtype == torch.float32 and got.shape == (n, 3)
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-5)
+    # same kernels in the same (rule) order wherever no rho sits within round-off of another
+    same = (aux["indices"] == ref_aux["indices"]).all(dim=1)
+    assert same.float().mean() > 0.999
+    np.testing.assert_allclose(aux["rho"].numpy(), ref_aux["rho"].numpy(), atol=1e-5)
+
+
+def test_other_dtypes_and_devices_keep_the_torch_path():
+    assert fused_blend.available(torch.device("cpu"), torch.float32) == fused_blend.ENABLED
+    assert not fused_blend.available(torch.device("cpu"), torch.float64)
+    assert not fused_blend.available(torch.device("cuda"), torch.float32)
+
+
+def test_select_is_the_kth_smallest():
+    """The in-place quickselect against a sort, on arrays full of repeated values."""
+    fused_blend._kernel()
+    select = fused_blend._select  # compiled by now
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        n = int(rng.integers(1, 60))
+        a = rng.integers(0, 5, n).astype(np.float64) / 4.0
+        k = int(rng.integers(0, n))
+        work = np.concatenate([a, np.full(3, -7.0)])  # the scratch is longer than n
+        assert select(work, n, k) == np.sort(a)[k]
+        np.testing.assert_array_equal(np.sort(work[:n]), np.sort(a))  # a permutation
