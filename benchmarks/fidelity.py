@@ -138,12 +138,13 @@ def run_one(
         "surface_psnr": m["surface_psnr"],
         "bytes_zip": m["bytes_zip"],
         "bytes_raw": m["bytes_raw"],
-        "bytes_zip_quantised": m.get("bytes_zip_quantised"),
+        "bytes_zip_quantised": m["bytes_zip_quantised_default_bits"],
         "vertex_colours_equal_bytes": at_equal_bytes(curve, m["bytes_zip"]),
         "quantised_version": QUANTISED_VERSION,
         "vertex_colours_equal_quantised_bytes": at_equal_bytes(
-            curve, m.get("bytes_zip_quantised") or m["bytes_zip"]
+            curve, m["bytes_zip_quantised_default_bits"]
         ),
+        "quantised_auto": auto_row(m["quantisation"], curve),
         "truncation": truncation(spectra, params.kernel.diffusion_time),
         "saturation": saturation(model, sat_f, sat_b),
         "split": edge_flat_split(mesh, pred, target, eval_f, eval_b),
@@ -170,25 +171,45 @@ def run_one(
     return row
 
 
-def rebyte(jsonl: Path) -> None:
-    """Quantised bytes of the saved sets in the current format, and VC at those bytes."""
+def auto_row(quantisation: dict, curve: list[dict]) -> dict:
+    """The file ``hktex fit --quantise`` writes (widths chosen for the fit), its own surface
+    PSNR, and vertex colours at its bytes."""
+    keep = ("bits", "bytes", "surface_psnr", "budget_db")
+    return {k: quantisation[k] for k in keep} | {
+        "vertex_colours": at_equal_bytes(curve, quantisation["bytes"])
+    }
+
+
+def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
+    """Quantised bytes of the saved sets in the current format, and VC at those bytes; for
+    rows of at least ``auto_min_steps`` steps also the fit-chosen widths' file and its PSNR
+    (a dozen queries per row, so not for every exploratory row)."""
+    from hktex_engine.fitting.uv import quantisation_for
     from hktex_engine.kernels.hkt import hkt_bytes, load_hkt
 
     rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
-    curves: dict[str, list[dict]] = {}
+    meshes: dict[str, tuple] = {}
+    spectra_cache = SpectraCache(cache)
     for r in rows:
         path = Path(r.get("hkt") or "")
         if not path.is_file():
             continue
-        if r["mesh"] not in curves:
+        if r["mesh"] not in meshes:
             obj, tex = MESHES[r["mesh"]]
             mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
             f, b, target = surface_samples(mesh, 60_000, 0)
-            curves[r["mesh"]] = vertex_colour_curve(mesh, f, b, target)
-        qz = hkt_bytes(load_hkt(path), quantised=True)["zip"]
+            meshes[r["mesh"]] = (mesh, f, b, target, vertex_colour_curve(mesh, f, b, target))
+        mesh, f, b, target, curve = meshes[r["mesh"]]
+        ks = load_hkt(path)
+        qz = hkt_bytes(ks, quantised=True)["zip"]
         r["bytes_zip_quantised"] = qz
         r["quantised_version"] = QUANTISED_VERSION
-        r["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curves[r["mesh"]], qz)
+        r["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curve, qz)
+        if r["steps"] >= auto_min_steps:
+            config = SpectralConfig(angles=7, k=int(r.get("spectra_k", 64)))
+            spectra = spectra_cache.get_or_compute(mesh, config)
+            r["quantised_auto"] = auto_row(quantisation_for(mesh, spectra, ks, f, b, target), curve)
+            print(r["mesh"], r["run"], r["quantised_auto"], flush=True)
     jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
 
 
@@ -200,10 +221,11 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
         f"Command(s): `{command}` (appends; this table is every row of fidelity.jsonl).",
         "",
         "| mesh | run | kernels | steps | K | PSNR dB | KB zip | VC equal bytes dB | Δ dB |"
-        " KB quantised | VC at those dB | Δq dB | MLP dB |"
+        " KB quantised | VC at those dB | Δq dB | KB fit-width file | its dB | VC at those | Δf dB |"
+        " MLP dB |"
         " before solve | edge share | PSNR edge/flat | sat/pt | >K_c | exp(-tλ_K) | fit s |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
-        "---:|---:|",
+        "---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         vc = r["vertex_colours_equal_bytes"]
@@ -212,12 +234,21 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
         mlp = (r.get("mlp_equal_samples") or {}).get("psnr")
         cs = r.get("colour_solve") or {}
         sp = r["split"]
+        version = r.get("quantised_version")
         quant = (
-            f"| {qb / 1e3:.1f}{'' if r.get('quantised_version') == 3 else ' (v2)'} "
+            f"| {qb / 1e3:.1f}{'' if version and version >= 3 else ' (v2)'} "
             f"| {vq['psnr']:.2f}{'*' if vq['extrapolated'] else ''} "
             f"| {r['surface_psnr'] - vq['psnr']:+.2f} "
             if qb and vq
             else "| - | - | - "
+        )
+        qa = r.get("quantised_auto")
+        quant += (
+            f"| {qa['bytes'] / 1e3:.1f} | {qa['surface_psnr']:.2f} "
+            f"| {qa['vertex_colours']['psnr']:.2f}{'*' if qa['vertex_colours']['extrapolated'] else ''} "
+            f"| **{qa['surface_psnr'] - qa['vertex_colours']['psnr']:+.2f}** "
+            if qa
+            else "| - | - | - | - "
         )
         lines.append(
             f"| {r['mesh']} | `{r['run']}` | {r['kernels']} | {r['steps']} | {r['spectra_k']} "
@@ -236,8 +267,11 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
         "",
         "VC equal bytes: vertex colours L0-L3 interpolated in log(bytes) at the kernel set's",
         "zipped bytes (* = outside L0-L3, extrapolated). Δ = HKTex minus that. KB quantised: the",
-        "set as a quantised .hkt (format 3 unless marked v2: rows measured before face ids were",
-        "delta-coded and not re-measured); Δq = HKTex minus vertex colours at those bytes. MLP:",
+        "set as a quantised .hkt at the default widths (format 4 after a --rebyte, else as",
+        "recorded; v2: before face ids were delta-coded); Δq = HKTex minus vertex colours at",
+        "those bytes. Fit-width file: what `hktex fit --quantise` writes (code widths chosen",
+        "for the fit, fitting/quantisation.py), scored itself (its dB, not the exact set's);",
+        "Δf = that minus vertex colours at its bytes. MLP:",
         "the positional-encoding MLP trained on the same samples and steps. 'before solve' is",
         "the PSNR before the least-squares colour solve (runs with +polish). edge share: the",
         "fraction of squared error on texture-edge points. sat/pt: candidates with r >= 1 per",
@@ -265,6 +299,12 @@ def main() -> int:
         help="re-measure the quantised bytes (current format) of every row whose saved .hkt"
         " still exists, with vertex colours at those bytes; then rewrite fidelity.md",
     )
+    ap.add_argument(
+        "--auto-min-steps",
+        type=int,
+        default=1500,
+        help="--rebyte also measures the fit-width file of rows with at least these steps",
+    )
     args = ap.parse_args()
     command = "python benchmarks/fidelity.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     jsonl, md = args.out / "fidelity.jsonl", args.out / "fidelity.md"
@@ -272,7 +312,7 @@ def main() -> int:
         write_table(jsonl, md, command)
         return 0
     if args.rebyte:
-        rebyte(jsonl)
+        rebyte(jsonl, args.cache, args.auto_min_steps)
         write_table(jsonl, md, command)
         return 0
     torch.manual_seed(0)

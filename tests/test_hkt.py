@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+import zlib
 
 import numpy as np
 import pytest
@@ -82,14 +83,16 @@ def test_refuses_other_mesh_or_config(tmp_path):
         load_hkt(path, expect_config_hash="y" * 64)
 
 
-def _rewrite(src, dst, change_member=None, manifest_patch=None, drop=None):
-    """Copy an .hkt, replacing one member's array or patching the manifest."""
+def _rewrite(src, dst, change_member=None, manifest_patch=None, drop=None, raw_member=None):
+    """Copy an .hkt, replacing one member's array (or bytes) or patching the manifest."""
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
         for info in zin.infolist():
             name = info.filename
             data = zin.read(name)
             if drop and name == drop:
                 continue
+            if raw_member and name == raw_member[0]:
+                data = raw_member[1]
             if change_member and name == change_member[0] + ".npy":
                 buf = io.BytesIO()
                 np.save(buf, change_member[1], allow_pickle=True)
@@ -200,7 +203,35 @@ def test_compact_storage_changes_colours_little(tmp_path):
     assert np.mean(diff > 1 / 255) < 0.01  # only points on the steepest kernel edges move
 
 
-# --------------------------------------------------------------------------- quantised (v2, v3)
+# --------------------------------------------------------------------------- quantised (v2-v4)
+
+
+def _as_version_3(src, dst):
+    """A version-3 file of the same kernels, written here from a version-4 one: each packed
+    member its own ``uint8`` ``.npy``, the base colour a member, the manifest indented."""
+    with zipfile.ZipFile(src) as zin:
+        m = json.loads(zin.read("manifest.json"))
+        data = zin.read("codes.bin")
+    n, table = m["count"], m["quantisation"]
+    per_kernel = {"barycentrics": 2, "colors": 3}
+    names = ["face_ids", "barycentrics", "theta", "eta", "threshold", "sharpness", "colors"]
+    sizes = [-(-n * per_kernel.get(k, 1) * table[k]["bits"] // 8) for k in names]
+    members, start = {}, 0
+    for name, length, size in zip(names, m.pop("streams"), sizes, strict=True):
+        raw = zlib.decompress(data[start : start + length], -15)  # a raw deflate stream
+        assert len(raw) == size
+        members[name] = np.frombuffer(raw, dtype=np.uint8)
+        start += length
+    members["base_color"] = np.asarray(m.pop("base_color"), dtype=np.float32)
+    m["version"] = 3
+    m["dtypes"] = {k: str(v.dtype) for k, v in members.items()}
+    with zipfile.ZipFile(dst, "w", compression=zipfile.ZIP_DEFLATED) as zout:
+        for name, arr in members.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, arr, allow_pickle=False)
+            zout.writestr(f"{name}.npy", buf.getvalue())
+        zout.writestr("manifest.json", json.dumps(m, indent=1))
+    return dst
 
 
 def _bounds_hold(back, ks, bits):
@@ -238,7 +269,11 @@ def test_quantised_round_trip_error_bounds(tmp_path):
     with zipfile.ZipFile(path) as zf:
         manifest = json.loads(zf.read("manifest.json"))
     deltas = np.diff(np.sort(ks.face_ids), prepend=0)
-    assert manifest["version"] == 3
+    assert manifest["version"] == 4
+    with zipfile.ZipFile(path) as zf:
+        assert sorted(zf.namelist()) == ["codes.bin", "manifest.json"]
+        assert zf.getinfo("codes.bin").compress_type == zipfile.ZIP_STORED
+    assert manifest["base_color"] == [float(x) for x in np.float32(ks.base_color)]
     assert manifest["quantisation"]["face_ids"] == {
         "bits": int(deltas.max()).bit_length(),
         "map": "delta",
@@ -259,12 +294,25 @@ def test_sorting_keeps_the_order_within_a_face():
         assert (np.diff(labels) > 0).all()  # clones of one face keep their relative order
 
 
+def test_version_3_files_still_read(tmp_path):
+    """Version 3 (one member per packed array) reads to the same kernels as version 4, and
+    version 4 saves the zip entries and headers of the other seven members."""
+    ks = make_set(n=500, n_faces=6000)
+    v4 = save_hkt(ks, tmp_path / "v4.hkt", quantised=True)
+    v3 = _as_version_3(v4, tmp_path / "v3.hkt")
+    a, b = load_hkt(v4), load_hkt(v3)
+    for name in ("face_ids", "barycentrics", "theta", "eta", "threshold", "sharpness", "colors"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(a.base_color, b.base_color)
+    assert v4.stat().st_size < v3.stat().st_size - 500
+
+
 def test_version_2_files_still_read(tmp_path):
     """A version-2 file (face ids as plain codes, kernels in any order) reads as before."""
     from hktex_engine.kernels.hkt import pack_codes
 
     ks = make_set(n=500, n_faces=6000)
-    src = save_hkt(ks, tmp_path / "v3.hkt", quantised=True)
+    src = _as_version_3(save_hkt(ks, tmp_path / "v4.hkt", quantised=True), tmp_path / "v3.hkt")
     v3 = load_hkt(src)
     shuffle = np.random.default_rng(5).permutation(500)
     # version 2 of the same (now shuffled) kernels: plain 13-bit face-id codes
@@ -364,7 +412,31 @@ def _set_q(member, key, value):
         ({"manifest_patch": {"count": 60}}, "packed bytes"),
     ],
 )
-def test_inconsistent_quantised_files(tmp_path, change, match):
+def test_inconsistent_version_3_files(tmp_path, change, match):
+    src = save_hkt(make_set(), tmp_path / "good.hkt", quantised=True)
+    src = _as_version_3(src, tmp_path / "v3.hkt")
+    bad = _rewrite(src, tmp_path / "bad.hkt", **change)
+    with pytest.raises(KernelSetError, match=match):
+        load_hkt(bad)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"raw_member": ("codes.bin", b"\x00" * 10)}, "streams"),
+        ({"drop": "codes.bin"}, "lacks member 'codes.bin'"),
+        ({"manifest_patch": {"streams": [1, 2]}}, "streams"),
+        ({"manifest_patch": {"streams": None}}, "streams"),
+        ({"manifest_patch": {"streams": [0, 1, 1, 1, 1, 1, 1]}}, "streams"),
+        ({"manifest_patch": {"base_color": [0.5, 0.5]}}, "base_color"),
+        ({"manifest_patch": {"base_color": None}}, "base_color"),
+        ({"manifest_patch": {"base_color": [0.5, "x", 0.5]}}, "base_color"),
+        ({"manifest_patch": {"base_color": [0.5, float("nan"), 0.5]}}, "finite"),
+        ({"manifest_patch": {"count": 10}}, "larger than|packed bytes"),
+        ({"manifest_patch": {"count": 60}}, "packed bytes"),
+    ],
+)
+def test_inconsistent_version_4_files(tmp_path, change, match):
     src = save_hkt(make_set(), tmp_path / "good.hkt", quantised=True)
     bad = _rewrite(src, tmp_path / "bad.hkt", **change)
     with pytest.raises(KernelSetError, match=match):
@@ -464,3 +536,22 @@ def test_quantised_storage_changes_colours_little(tmp_path):
     # measured 44.9 dB; random kernels on 80 large faces are a harsh case (a centre's 1/255
     # barycentric step is a long way here): the fitted spot set measures in docs/kernels.md
     assert psnr(quant, exact) > 40.0
+
+
+def test_version_4_streams_inflate_no_further_than_their_codes(tmp_path):
+    """A stream that holds more than its member's packed bytes (a bomb in small) is refused,
+    and the reader stops inflating one byte past what the member can need."""
+    src = save_hkt(make_set(), tmp_path / "good.hkt", quantised=True)
+    with zipfile.ZipFile(src) as zf:
+        m = json.loads(zf.read("manifest.json"))
+        data = zf.read("codes.bin")
+    first = m["streams"][0]
+    c = zlib.compressobj(9, zlib.DEFLATED, -15)
+    big = c.compress(b"\0" * 5000) + c.flush()  # 5,000 bytes where the face ids need ~8
+    m["streams"][0] = len(big)
+    dst = tmp_path / "bomb.hkt"
+    with zipfile.ZipFile(dst, "w") as zout:
+        zout.writestr("codes.bin", big + data[first:])
+        zout.writestr("manifest.json", json.dumps(m))
+    with pytest.raises(KernelSetError, match="face_ids.*packed bytes"):
+        load_hkt(dst)

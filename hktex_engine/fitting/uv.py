@@ -42,6 +42,9 @@ from hktex_engine.spectra.interpolation import SpectralField, resolve_device
 #: EVALUATION.md: surface PSNR on 60,000 area-uniform points with a fixed seed
 EVAL_POINTS = 60_000
 EVAL_SEED = 0
+#: Points the quantised widths are chosen on (their own seed: the score stays on the evaluation
+#: points, which the choice never saw).
+QUANT_CHOICE_POINTS = 20_000
 #: points per no-grad evaluation chunk (bounded memory: P x K_s x G dot products)
 EVAL_CHUNK = 4096
 #: points per kernel for the final colour solve (``FitParams.polish_colors``): ~2-3 x K_c
@@ -214,7 +217,8 @@ def evaluate_albedo(model: HeatKernelModel, face_ids: np.ndarray, bary: np.ndarr
 
 def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
     """Raw and zip bytes of the kernel set as a ``.hkt`` file (EVALUATION.md 'Bytes'), and
-    of its quantised form (format version 3, ``save_hkt(..., quantised=True)``)."""
+    of its quantised form at the format's default widths (``save_hkt(..., quantised=True)``;
+    :func:`quantisation_for` measures the widths a fit's file uses)."""
     from hktex_engine.kernels.hkt import hkt_bytes, save_hkt
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -225,6 +229,30 @@ def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
     quantised = hkt_bytes(kernelset, quantised=True)
     out["raw_quantised"], out["zip_quantised"] = quantised["raw"], quantised["zip"]
     return out
+
+
+def quantisation_for(mesh, spectra, kernelset, eval_f, eval_b, eval_target) -> dict:
+    """The code widths a quantised file of this fit uses (``fitting.quantisation``: chosen
+    on their own points, within ``BUDGET_DB``) and what that file scores on the evaluation
+    points; ``hktex fit --quantise`` writes it."""
+    from hktex_engine.fitting.quantisation import choose_bits, roundtrip
+    from hktex_engine.kernels.query import AlbedoQuery
+
+    n = min(QUANT_CHOICE_POINTS, len(eval_f))  # a small evaluation (tests) chooses on as few
+    f, b, target = surface_samples(mesh, n, EVAL_SEED + 1)
+    choice = choose_bits(spectra, kernelset, f, b, target)
+    q, _ = roundtrip(kernelset, choice["bits"])
+    scored = psnr(AlbedoQuery(spectra, q, device="cpu").colors(eval_f, eval_b), eval_target)
+    return {
+        "bits": choice["bits"],
+        "bytes": choice["bytes"],
+        "surface_psnr": scored,
+        "choice_points": n,
+        "choice_psnr_exact": choice["psnr_exact"],
+        "choice_psnr": choice["psnr"],
+        "budget_db": choice["budget_db"],
+        "tried": [{"bytes": t["bytes"], "psnr": t["psnr"]} for t in choice["tried"]],
+    }
 
 
 def spectra_bytes(spectra: Spectra) -> int:
@@ -335,7 +363,11 @@ def fit_uv(
     metrics["bytes_raw"], metrics["bytes_zip"] = nbytes["raw"], nbytes["zip"]
     metrics["bytes_file"] = nbytes["file"]
     metrics["bytes_raw_quantised"] = nbytes["raw_quantised"]
-    metrics["bytes_zip_quantised"] = nbytes["zip_quantised"]
+    metrics["bytes_zip_quantised_default_bits"] = nbytes["zip_quantised"]
+    metrics["quantisation"] = quantisation_for(
+        mesh, spectra, kernelset, eval_f, eval_b, eval_target
+    )
+    metrics["bytes_zip_quantised"] = metrics["quantisation"]["bytes"]
     metrics["spectra_bytes"] = spectra_bytes(spectra)
     timings["bytes_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
