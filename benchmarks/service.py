@@ -307,6 +307,16 @@ def old_server_path(rev: str, work: Path, with_engine: bool = False) -> Path:
     return dest
 
 
+def engine_location(env: dict[str, str], cwd: Path) -> str:
+    """Where a server started with ``env`` from ``cwd`` imports ``hktex_engine`` from (the
+    proof that each side ran the engine it names)."""
+    probe = "import hktex_engine, os; print(os.path.dirname(hktex_engine.__file__))"
+    out = subprocess.run(
+        [sys.executable, "-c", probe], env=env, cwd=cwd, capture_output=True, text=True
+    )
+    return out.stdout.strip() or out.stderr.strip()[-200:]
+
+
 def compare(args: argparse.Namespace, command: str) -> int:
     """Old server code vs the working tree's, same kernel set and load, one run."""
     threads = {
@@ -326,7 +336,10 @@ def compare(args: argparse.Namespace, command: str) -> int:
             data = work / label.split()[0]
             env = {**threads, "HKTEX_TOKENS": "", **extra}
             load = os.getloadavg()[0]
-            with spawned_service(data, 0, env) as url:
+            # outside the repository (both sides alike): from its root, ``python -m`` would
+            # import today's hktex_engine ahead of the old one on PYTHONPATH (it did, until
+            # 2026-12-01 night: the "old" side of earlier --with-engine runs had today's engine)
+            with spawned_service(data, 0, env, cwd=work) as url:
                 ks_id, n_faces, ks_info = seed_kernelset(url, data, work, args.kernels)
                 with httpx.Client(base_url=url, timeout=300) as c:  # warm every worker
                     rng = np.random.default_rng(1)
@@ -346,6 +359,7 @@ def compare(args: argparse.Namespace, command: str) -> int:
                 )
                 cpu = tree_cpu_seconds(pid) - cpu0
             queries["load_average_before"] = round(load, 2)
+            queries["engine_imported_from"] = engine_location({**os.environ, **env}, work)
             # On a shared, saturated host throughput measures the scheduler; the server's CPU
             # use says what the code can do: cores it kept busy, points per CPU-second.
             queries["server_cpu_s"] = round(cpu, 1)
@@ -385,6 +399,7 @@ def write_compare_md(out: Path, result: dict) -> None:
         rows.append(f"| {name} | " + " | ".join(fn(r) for r in result["runs"].values()) + " |")
 
     row("load average before", lambda r: str(r["load_average_before"]))
+    row("hktex_engine imported from", lambda r: f"`{r.get('engine_imported_from', '?')}`")
     row("requests / errors", lambda r: f"{r['requests']} / {r['errors']}")
     row("throughput", lambda r: f"{r['requests_per_s']} req/s, {r['points_per_s']:,} points/s")
     row("latency p50 / p99 / max", lambda r: f"{r['p50_ms']} / {r['p99_ms']} / {r['max_ms']} ms")

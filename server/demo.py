@@ -203,12 +203,16 @@ def spawned_service(
     workers: int = 1,
     env: dict[str, str] | None = None,
     startup_timeout: float = 120.0,
+    cwd: Path | None = None,
 ) -> Iterator[str]:
     """``hktex serve`` as a child process on a free loopback port; yield its URL.
 
     For tests and benchmarks: the service's threads (rendering through Dr.Jit, queries through
     torch) then cannot disturb the caller's interpreter, and a crash there is a failed request,
-    not a dead test run. Extra settings go through ``env`` (``HKTEX_*`` variables).
+    not a dead test run. Extra settings go through ``env`` (``HKTEX_*`` variables). ``cwd``:
+    the child's working directory; ``python -m`` puts it first on ``sys.path``, so a caller
+    that puts other code on ``PYTHONPATH`` (benchmarks/service.py's old side) must run it
+    outside the repository, whose ``hktex_engine/`` would shadow that code.
     """
     import os
     import signal
@@ -244,6 +248,7 @@ def spawned_service(
         stderr=subprocess.STDOUT,
         env={**os.environ, **(env or {})},
         start_new_session=True,
+        cwd=cwd,
     )
     url = f"http://127.0.0.1:{port}"
     try:
