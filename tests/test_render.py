@@ -251,7 +251,7 @@ def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
 
     scene = R.RenderScene(V, F, R.RenderSettings(width=24, height=24, spp=4), albedo_fn=fn)
     cam = R.orbit_camera(V, 20, 10)
-    cached = scene.render(cam, seed=3)
+    cached = scene.render(cam, seed=3, cache=True)
     evaluated = sum(counts)
     # one albedo call on the recorded distinct points; the second pass asked for no other
     assert len(counts) == 1

@@ -544,17 +544,20 @@ class RenderScene:
         spp: int | None = None,
         seed: int = 0,
         sensor: Any = None,
-        cache: bool = True,
+        cache: bool = False,
     ) -> np.ndarray:
         """Linear RGB image (H, W, 3) float32; no gradients are tracked.
 
-        ``cache`` (default) renders in two passes with the same seed: the first, with a
+        ``cache=True`` renders in two passes with the same seed: the first, with a
         placeholder albedo, only records where the texture is asked (with a diffuse BSDF
         and no Russian roulette the paths do not depend on the albedo values); the albedo
         function then runs **once**, on the distinct recorded points; the second pass
         renders with those exact values (:class:`_PointCache`, bit-exact keys; a point the
         second pass asks that the first did not is evaluated on the spot, so the image is
-        exact either way). ``False`` evaluates every request as it comes (one pass)."""
+        exact either way). The default evaluates every request as it comes (one pass): with
+        the compiled blend the second Mitsuba pass and the keying cost more than the 31 % of
+        repeated requests they save (benchmarks/results/render.md: 0.60 s against 1.62 s on
+        spot at 128^2, 8 spp); an expensive albedo function may still want the cache."""
         import drjit as dr
         import mitsuba as mi
 
