@@ -42,10 +42,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--view", default="30,20")
+    ap.add_argument(
+        "--kernel-config",
+        choices=["default", "bench-2026-11"],
+        default="default",
+        help="the kernels' K_s/K_c/t/sigma_B: the default preset's (what a fit makes now), or "
+        "the one earlier rows used (t = 0.004, sigma_B = 0.12, K_s = 100, K_c = 10)",
+    )
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args(argv)
 
-    from hktex_engine.config import FitParams, KernelConfig, SpectralConfig
+    from hktex_engine.config import (
+        DEFAULT_PRESET,
+        FitParams,
+        KernelConfig,
+        SpectralConfig,
+        fit_preset,
+    )
     from hktex_engine.fitting.uv import initial_kernelset
     from hktex_engine.geometry.mesh import load_mesh
     from hktex_engine.kernels.query import AlbedoQuery
@@ -65,9 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     spectra = compute_spectra(
         mesh, SpectralConfig(angles=3, anisotropies=(1.0, 15.0), k=32, k_iso=17)
     )
-    params = FitParams(
-        kernels=args.kernels, kernel=KernelConfig(diffusion_time=0.004, sigma_b=0.12)
-    )
+    if args.kernel_config == "default":
+        kernel = fit_preset(DEFAULT_PRESET).kernel
+    else:
+        kernel = KernelConfig(diffusion_time=0.004, sigma_b=0.12)
+    params = FitParams(kernels=args.kernels, kernel=kernel)
     kernelset = initial_kernelset(mesh, spectra, params, np.random.default_rng(0))
     query = AlbedoQuery(spectra, kernelset)
     settings = RenderSettings(width=args.size, height=args.size, spp=args.spp)
@@ -108,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
             "mesh": args.mesh,
             "vertices": int(len(spectra.vertices)),
             "kernels": len(kernelset.theta),
+            "kernel_config": kernel.to_dict(),
             "size": args.size,
             "spp": args.spp,
             "view": args.view,
@@ -132,7 +148,9 @@ def main(argv: list[str] | None = None) -> int:
         f"Command: `{result['command']}`  ",
         f"Machine: {machine_line(result['machine'])}  ",
         f"Setup: {s['mesh']} ({s['vertices']} vertices), {s['kernels']} kernels (UV init, "
-        f"t = 0.004, sigma_B = 0.12), spectra 3 x [1, 15] x K = 32, {s['size']}^2 at "
+        f"t = {kernel.diffusion_time:g}, sigma_B = {kernel.sigma_b:g}, K_s = "
+        f"{kernel.k_search}, K_c = {kernel.k_blend}), spectra 3 x [1, 15] x K = 32, "
+        f"{s['size']}^2 at "
         f"{s['spp']} spp, prb max_depth 3, constant white light, view {s['view']}; the three "
         f"renders alternate {s['repeats']} times after one warm-up each (medians).",
         "",
