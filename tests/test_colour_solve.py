@@ -75,3 +75,28 @@ def test_polish_in_fit_uv_is_recorded_and_helps_on_fresh_points():
     # evaluation points are independent of the solve's points (EVAL_SEED vs the fit's rng);
     # measured 16.51 -> 16.70 dB (2026-12-01): this tiny fit is footprint-bound, as real ones are
     assert polished.metrics["surface_psnr"] > plain.metrics["surface_psnr"]
+
+
+def test_a_solve_that_loses_on_validation_points_is_undone(monkeypatch):
+    """The guard in fit_uv: a solve scoring worse on its validation points than the
+    optimiser's colours is reverted (here a stand-in solve that ruins the colours), and the
+    fit then equals the unpolished one exactly."""
+    from hktex_engine.fitting import uv as uv_mod
+
+    mesh = _demo_mesh()
+    spectra = compute_spectra(mesh, TINY)
+    base = dict(kernels=200, steps=20, points_per_step=256, seed=5, densify=False)
+    plain = fit_uv(mesh, spectra, FitParams(**base), eval_points=3000)
+
+    def ruin(model, mesh_, n_points, rng, **kw):
+        with torch.no_grad():
+            model.colors.fill_(0.9)
+        return {"points": n_points, "rmse_before": 0.0, "rmse_after": 1.0}
+
+    monkeypatch.setattr(uv_mod, "solve_colours", ruin)
+    guarded = fit_uv(mesh, spectra, FitParams(**base, polish_colors=True), eval_points=3000)
+    solve = guarded.metrics["colour_solve"]
+    assert solve["kept"] is False
+    assert solve["validation_psnr_after"] < solve["validation_psnr_before"]
+    assert guarded.metrics["surface_psnr"] == plain.metrics["surface_psnr"]
+    np.testing.assert_array_equal(guarded.kernelset.colors, plain.kernelset.colors)
