@@ -1,10 +1,10 @@
-"""The quantised ``.hkt`` (format version 3) on a fitted kernel set: bytes and fidelity loss.
+"""The quantised ``.hkt`` (the current format version) on a fitted kernel set: bytes and fidelity loss.
 
     python benchmarks/hkt_quantised.py KERNELS.hkt --mesh MESH [--texture IMAGE]
         [--spectra DIR] [--points 60000] [--bits colors=10,threshold=12 ...] [--paper-views]
 
 Reports the kernel set's bytes in every storage form (float32/int64, the compact version-1
-default, the quantised version 3: raw arrays, zip of the members, the file), surface PSNR
+default, the quantised file: raw arrays, zip of the members, the file), surface PSNR
 (EVALUATION.md: 60,000 points, seed 0) of the set as read and quantised, the loss when each
 member alone is quantised (which member costs what), and with ``--paper-views`` the paper-view
 scores of both. Writes benchmarks/results/hkt_quantised.json and .md.
@@ -25,7 +25,14 @@ from _machine import machine_info, machine_line
 
 from hktex_engine.evaluation.metrics import psnr, storage_bytes, surface_samples
 from hktex_engine.geometry.mesh import load_mesh
-from hktex_engine.kernels.hkt import QUANT_BITS, hkt_bytes, load_hkt, save_hkt, sorted_by_face
+from hktex_engine.kernels.hkt import (
+    QUANT_BITS,
+    QUANTISED_VERSION,
+    hkt_bytes,
+    load_hkt,
+    save_hkt,
+    sorted_by_face,
+)
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.spectra.grid import load_spectra
 
@@ -129,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
 def write_md(path: Path, r: dict) -> None:
     n = r["kernels"]
     lines = [
-        "# Quantised .hkt (format version 3)",
+        f"# Quantised .hkt (format version {QUANTISED_VERSION})",
         "",
         f"Command: `{r['command']}`  ",
         f"Machine: {machine_line(r['machine'])}  ",
@@ -148,7 +155,7 @@ def write_md(path: Path, r: dict) -> None:
     for v in r["quantised"]:
         bits = ", ".join(f"{k} {b}" for k, b in v["bits"].items())
         lines.append(
-            f"| quantised (v3: {bits}) | {v['raw']} | {v['zip_members']} | {v['file']} "
+            f"| quantised (v{QUANTISED_VERSION}: {bits}) | {v['raw']} | {v['zip_members']} | {v['file']} "
             f"| {v['bytes_per_kernel_file']:.2f} | {v['psnr']:.3f} | {v['loss_db']:+.3f} |"
         )
     lines += ["", "Loss when one member alone is quantised (dB), per setting:", ""]
