@@ -138,13 +138,7 @@ def run_one(
         "surface_psnr": m["surface_psnr"],
         "bytes_zip": m["bytes_zip"],
         "bytes_raw": m["bytes_raw"],
-        "bytes_zip_quantised": m["bytes_zip_quantised_default_bits"],
         "vertex_colours_equal_bytes": at_equal_bytes(curve, m["bytes_zip"]),
-        "quantised_version": QUANTISED_VERSION,
-        "vertex_colours_equal_quantised_bytes": at_equal_bytes(
-            curve, m["bytes_zip_quantised_default_bits"]
-        ),
-        "quantised_auto": auto_row(m["quantisation"], curve),
         "truncation": truncation(spectra, params.kernel.diffusion_time),
         "saturation": saturation(model, sat_f, sat_b),
         "split": edge_flat_split(mesh, pred, target, eval_f, eval_b),
@@ -155,6 +149,9 @@ def run_one(
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
     }
+    # bytes of the file as written (the fit's metrics measure the set before its provenance
+    # is attached: ~1 KB less)
+    measure_file(row, res.kernelset, mesh, spectra, eval_f, eval_b, target, curve)
     # readable prefix + a digest of the whole label: two runs whose labels share their first
     # 60 characters once overwrote each other's saved set
     digest = hashlib.sha1(label.encode()).hexdigest()[:8]
@@ -184,8 +181,7 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
     """Quantised bytes of the saved sets in the current format, and VC at those bytes; for
     rows of at least ``auto_min_steps`` steps also the fit-chosen widths' file and its PSNR
     (a dozen queries per row, so not for every exploratory row)."""
-    from hktex_engine.fitting.uv import quantisation_for
-    from hktex_engine.kernels.hkt import hkt_bytes, load_hkt
+    from hktex_engine.kernels.hkt import load_hkt
 
     rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
     meshes: dict[str, tuple] = {}
@@ -200,17 +196,28 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
             f, b, target = surface_samples(mesh, 60_000, 0)
             meshes[r["mesh"]] = (mesh, f, b, target, vertex_colour_curve(mesh, f, b, target))
         mesh, f, b, target, curve = meshes[r["mesh"]]
-        ks = load_hkt(path)
-        qz = hkt_bytes(ks, quantised=True)["zip"]
-        r["bytes_zip_quantised"] = qz
-        r["quantised_version"] = QUANTISED_VERSION
-        r["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curve, qz)
+        spectra = None
         if r["steps"] >= auto_min_steps:
             config = SpectralConfig(angles=7, k=int(r.get("spectra_k", 64)))
             spectra = spectra_cache.get_or_compute(mesh, config)
-            r["quantised_auto"] = auto_row(quantisation_for(mesh, spectra, ks, f, b, target), curve)
-            print(r["mesh"], r["run"], r["quantised_auto"], flush=True)
+        measure_file(r, load_hkt(path), mesh, spectra, f, b, target, curve)
+        print(r["mesh"], r["run"], r.get("quantised_auto"), flush=True)
     jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def measure_file(row: dict, ks, mesh, spectra, f, b, target, curve) -> None:
+    """The row's quantised bytes as the saved file holds the set (its fit's provenance in
+    the manifest, as ``hktex fit`` writes it), VC at those bytes, and with ``spectra`` the
+    fit-width file (``hktex fit --quantise``) scored itself."""
+    from hktex_engine.fitting.uv import quantisation_for
+    from hktex_engine.kernels.hkt import hkt_bytes
+
+    qz = hkt_bytes(ks, quantised=True)["zip"]
+    row["bytes_zip_quantised"] = qz
+    row["quantised_version"] = QUANTISED_VERSION
+    row["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curve, qz)
+    if spectra is not None:
+        row["quantised_auto"] = auto_row(quantisation_for(mesh, spectra, ks, f, b, target), curve)
 
 
 def write_table(jsonl: Path, md: Path, command: str) -> None:
