@@ -456,6 +456,8 @@ class HeatKernelModel(nn.Module):
             return None
         self._ensure_cache()
         key = self._version_key([self.bary, self.theta, self.s])
+        if self._vtables is not None and self._vtables_full and self._vtables_key == key:
+            return self._vtables  # the whole mesh: no need to find this batch's vertices
         verts = torch.unique(self.field.faces[face_ids])
         if self._vtables is not None and self._vtables_key == key:
             if self._vtables.covers(verts):
