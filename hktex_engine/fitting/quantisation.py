@@ -18,7 +18,7 @@ import io
 import numpy as np
 
 from hktex_engine.evaluation.metrics import psnr
-from hktex_engine.kernels.hkt import QUANT_BITS, _encode, load_hkt, sorted_by_face
+from hktex_engine.kernels.hkt import QUANT_BITS, encode_hkt, load_hkt, sorted_by_face
 from hktex_engine.kernels.model import KernelSet
 
 #: Widths from the format's default to narrow ones. Each step narrows the members that cost
@@ -42,7 +42,7 @@ BUDGET_DB = 0.08
 def roundtrip(kernelset: KernelSet, bits: dict[str, int] | None) -> tuple[KernelSet, int]:
     """The set as a reader gets it back from a quantised file with ``bits``, and the file's
     bytes (the set sorted by face, as the file stores it)."""
-    payload = _encode(kernelset, True, quantised=True, bits=bits)
+    payload = encode_hkt(kernelset, True, quantised=True, bits=bits)
     return load_hkt(io.BytesIO(payload)), len(payload)
 
 
@@ -56,7 +56,8 @@ def choose_bits(
 ) -> dict:
     """The narrowest :data:`BITS_LADDER` widths within ``budget_db`` of the exact set's
     surface PSNR at ``(face_ids, bary)`` against ``target`` (the default widths when even
-    they are not). Returns ``{"bits", "bytes", "psnr_exact", "psnr", "tried"}``."""
+    they are not). Returns ``{"bits", "bytes", "psnr", "kernelset", "psnr_exact",
+    "budget_db", "tried"}``; ``kernelset`` is the chosen file's set as a reader gets it."""
     from hktex_engine.kernels.query import AlbedoQuery
 
     def score(ks: KernelSet) -> float:
@@ -71,7 +72,7 @@ def choose_bits(
         tried.append({"bits": bits, "bytes": nbytes, "psnr": value})
         if exact - value > budget_db:
             break
-        chosen = tried[-1]
+        chosen = {**tried[-1], "kernelset": q}
     if chosen is None:
-        chosen = tried[0]
+        chosen = {**tried[0], "kernelset": roundtrip(kernelset, tried[0]["bits"])[0]}
     return {**chosen, "psnr_exact": exact, "budget_db": budget_db, "tried": tried}

@@ -260,14 +260,14 @@ def quantisation_for(mesh, spectra, kernelset, eval_f, eval_b, eval_target) -> d
     """The code widths a quantised file of this fit uses (``fitting.quantisation``: chosen
     on their own points, within ``BUDGET_DB``) and what that file scores on the evaluation
     points; ``hktex fit --quantise`` writes it."""
-    from hktex_engine.fitting.quantisation import choose_bits, roundtrip
+    from hktex_engine.fitting.quantisation import choose_bits
     from hktex_engine.kernels.query import AlbedoQuery
 
     n = min(QUANT_CHOICE_POINTS, len(eval_f))  # a small evaluation (tests) chooses on as few
     f, b, target = surface_samples(mesh, n, EVAL_SEED + 1)
     choice = choose_bits(spectra, kernelset, f, b, target)
-    q, _ = roundtrip(kernelset, choice["bits"])
-    scored = psnr(AlbedoQuery(spectra, q, device="cpu").colors(eval_f, eval_b), eval_target)
+    query = AlbedoQuery(spectra, choice["kernelset"], device="cpu")
+    scored = psnr(query.colors(eval_f, eval_b), eval_target)
     return {
         "bits": choice["bits"],
         "bytes": choice["bytes"],

@@ -12,16 +12,16 @@ only narrows dtypes, which a reader gets back as ordinary numbers without scale 
 - ``base_color`` float32.
 
 Quantised storage (``save_hkt(..., quantised=True)``, format version 4; versions 2 and 3 are
-read too) stores each per-kernel member as bit-packed integer codes (big-endian bit order, ``np.packbits``), with the codes'
-meaning in the manifest's ``quantisation`` table (see :data:`QUANT_BITS` and docs/kernels.md):
+read too) stores each per-kernel member as bit-packed integer codes (big-endian bit order,
+``np.packbits``), with the codes' meaning in the manifest's ``quantisation`` table (see :data:`QUANT_BITS` and docs/kernels.md):
 the kernels sorted by face id (stably) and the face ids as differences in the bits the largest
 difference needs (version 2: the ids themselves), two barycentrics on the simplex grid, ``theta`` linear over
 ``[0, pi]``, ``eta`` and ``sharpness`` linear in their logarithm, ``threshold`` at cell
 midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
 own range. Version 4 puts the packed members' deflate streams one after another in a single
 stored member ``codes.bin`` and the base colour in the manifest; versions 2 and 3 kept one
-``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 4; a version-1 file is written unless
-quantisation is asked for, so older readers keep reading what they read before.
+``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 4; a version-1 file is
+written unless quantisation is asked for, so older readers keep reading what they read before.
 
 Reading is defensive because a file may come from anyone: members are checked for size before
 they are decompressed (zip bombs), ``.npy`` headers are parsed with pickles refused, and
@@ -132,7 +132,7 @@ def save_hkt(
     per member); otherwise version 1, ``compact`` choosing narrow dtypes or float32/int64.
     """
     path = Path(path)
-    payload = _encode(kernelset, compact, quantised, bits)  # validates before any disk write
+    payload = encode_hkt(kernelset, compact, quantised, bits)  # validates before any disk write
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         tmp.write_bytes(payload)
@@ -155,16 +155,17 @@ def hkt_bytes(
     else:
         arrays = _stored_arrays(kernelset, compact)
     raw = sum(a.nbytes for a in arrays.values())
-    return {"raw": int(raw), "zip": len(_encode(kernelset, compact, quantised, bits))}
+    return {"raw": int(raw), "zip": len(encode_hkt(kernelset, compact, quantised, bits))}
 
 
-def _encode(
+def encode_hkt(
     kernelset: KernelSet,
     compact: bool,
     quantised: bool = False,
     bits: dict[str, int] | None = None,
 ) -> bytes:
-    """The whole ``.hkt`` file in memory (a kernel set is a few MB at most)."""
+    """The whole ``.hkt`` file in memory (a kernel set is a few MB at most), as
+    :func:`save_hkt` writes it; ``load_hkt(io.BytesIO(...))`` reads it back."""
     kernelset.validate()
     if kernelset.color_space not in COLOR_SPACES:
         raise KernelSetError(f"color_space must be one of {COLOR_SPACES}")
