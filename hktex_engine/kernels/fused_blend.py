@@ -19,60 +19,30 @@ Only the CPU float32 path uses it; CUDA and other dtypes keep the torch path.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import math
-import os
-import threading
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
-#: numba is imported on first use (its import costs ~0.5-1 s that a CLI call should not pay).
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+from hktex_engine.kernels import compiled
+
+HAVE_NUMBA = compiled.HAVE_NUMBA
 
 log = logging.getLogger("hktex.kernels")
 
-#: ``HKTEX_FUSED_BLEND=0`` turns the compiled path off (the torch path answers).
-ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
+#: Off with ``HKTEX_FUSED_BLEND=0`` (``kernels.compiled``) or when it fails to build.
+ENABLED = compiled.ENABLED
 #: Below this many points one thread does the whole call (thread start-up would dominate).
 THREAD_MIN_POINTS = 2048
+
+_unit = compiled.unit
+_select = compiled.select
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
     """Whether the compiled blend can answer for a model on ``device`` in ``dtype``."""
-    return ENABLED and HAVE_NUMBA and device.type == "cpu" and dtype == torch.float32
-
-
-def _unit(v):
-    """``v`` (float32) clamped to [0, 1]."""
-    return max(min(v, np.float32(1.0)), np.float32(0.0))
-
-
-def _select(a, n, k):
-    """The ``k``-th smallest (0-based) of ``a[:n]``, reordering ``a`` in place (Hoare's
-    quickselect, middle pivot; ``np.partition`` would allocate a copy per point)."""
-    lo, hi = 0, n - 1
-    while lo < hi:
-        pivot = a[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return a[k]
+    return ENABLED and compiled.available(device, dtype)
 
 
 def _blend_points(
@@ -180,29 +150,16 @@ def _blend_points(
 
 
 _COMPILED = None
-_COMPILING = threading.Lock()
 
 
 def _kernel():
-    """The compiled ``_blend_points`` (built on first use; numba's disk cache makes later
-    processes load it in well under a second)."""
+    """The compiled ``_blend_points`` (built on first use)."""
     global _COMPILED, _select, _unit
-    with _COMPILING:
-        if _COMPILED is None:
-            import numba
-
-            _unit = numba.njit(inline="always")(_unit)
-            _select = numba.njit(_select)
-            try:  # numba's on-disk cache (next to this file, or the user's cache directory)
-                _COMPILED = numba.njit(nogil=True, cache=True)(_blend_points)
-            except RuntimeError:  # no writable cache location: compile in each process
-                _COMPILED = numba.njit(nogil=True)(_blend_points)
+    if _COMPILED is None:
+        _unit = compiled.jit(compiled.unit, inline=True)
+        _select = compiled.jit(compiled.select)
+        _COMPILED = compiled.jit(_blend_points)
     return _COMPILED
-
-
-def _array(t: torch.Tensor) -> np.ndarray:
-    """A C-contiguous numpy view of a CPU tensor (a copy only when it is not contiguous)."""
-    return t.numpy() if t.is_contiguous() else np.ascontiguousarray(t.numpy())
 
 
 def blend(
@@ -227,29 +184,22 @@ def blend(
     high = torch.sigmoid(sharpness * (1 - threshold))
     # tables hold no graph (views, not copies: they may be the whole mesh's); the kernels'
     # attributes may be Parameters (detached: a view, nothing copied)
-    tables = [_array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
-    attrs = [_array(t.detach()) for t in (norm, threshold, sharpness, low, high, colors)]
-    args = [*tables, *attrs, _array(base_color.detach())]
-    b = _array(bary.detach().to(torch.float32))
+    tables = [compiled.array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
+    attrs = [compiled.array(t) for t in (norm, threshold, sharpness, low, high, colors)]
+    args = [*tables, *attrs, compiled.array(base_color)]
+    b = compiled.array(bary.to(torch.float32))
     scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
     n = rows.shape[0]
     k_c = min(k_c, k_s)
     out = np.empty((n, 3), dtype=np.float32)
     out_kid = np.empty((n, k_c), dtype=np.int64)
     out_rho = np.empty((n, k_c), dtype=np.float32)
-    threads = max(1, min(torch.get_num_threads(), n // THREAD_MIN_POINTS))
-
     kernel = _kernel()
 
     def run(sl: slice) -> None:
         kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl])
 
-    if threads == 1:
-        run(slice(0, n))
-    else:
-        bounds = np.linspace(0, n, threads + 1).astype(int)
-        with ThreadPoolExecutor(threads) as pool:
-            list(pool.map(run, [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]))
+    compiled.run_threaded(run, n, THREAD_MIN_POINTS)
     return torch.from_numpy(out), torch.from_numpy(out_kid), torch.from_numpy(out_rho)
 
 

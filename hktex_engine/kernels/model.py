@@ -29,7 +29,7 @@ from torch import nn
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
-from hktex_engine.kernels import fused_blend
+from hktex_engine.kernels import fused_blend, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.knn import CandidateSearch
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
 from hktex_engine.kernels.tables import (
@@ -409,9 +409,33 @@ class HeatKernelModel(nn.Module):
         key = self._version_key([self.bary])
         if key == self._knn_key:
             return
-        self._centre_emb = self.field.embedding_at(self.face_ids, self.bary)
-        self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
+        self._centre_emb = self._embedding(self.face_ids, self.bary.detach())
+        self._knn = None  # the index is built when a search needs it (_index)
         self._knn_key = key
+
+    def _embedding(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
+        """``field.embedding_at``, compiled on the CPU in float32 (centres each step)."""
+        if fused_terms.available(self.field, bary.dtype) and bary.dtype == self.field.dtype:
+            return fused_terms.Embedding.apply(self.field, face_ids, bary)
+        return self.field.embedding_at(face_ids, bary)
+
+    def _index(self) -> CandidateSearch:
+        """The KNN index over the current centre embeddings (built on first use: training
+        steps on the CPU search without it, see :meth:`_nearest`)."""
+        self._ensure_knn()
+        if self._knn is None:
+            self._knn = CandidateSearch(self._centre_emb, backend=self.knn_backend)
+        return self._knn
+
+    def _nearest(self, emb_y: torch.Tensor, k_s: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The exact ``k_s`` nearest centres of each point under the tie rule, nearest first:
+        ``(cand, d2)``; compiled on the CPU in float32 (no index to rebuild when the centres
+        moved), else the index's candidates cut exactly (:func:`_exact_cut`)."""
+        self._ensure_knn()
+        if self.knn_backend == "auto" and fused_rank.available(emb_y.device, emb_y.dtype):
+            return fused_rank.nearest(emb_y.detach(), self._centre_emb, k_s)
+        cand = self._index().search(emb_y, k_s + KNN_MARGIN)
+        return _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)
 
     @torch.no_grad()
     def prepare_tables(self) -> VertexTables | None:
@@ -440,7 +464,7 @@ class HeatKernelModel(nn.Module):
             self._radius = star_radius(self.field)
         k_s = min(self.config.k_search, len(self))
         return build_tables(
-            self.field, verts, self._centre_emb, self._terms, k_s, self._radius, self._knn
+            self.field, verts, self._centre_emb, self._terms, k_s, self._radius, self._index()
         )
 
     @torch.no_grad()
@@ -519,6 +543,15 @@ class HeatKernelModel(nn.Module):
         """
         theta, s = self.theta[idx], self.s[idx]
         face_ids, bary = self.face_ids[idx], self.bary[idx]
+        if fused_terms.available(self.field, bary.dtype):
+            nodes, weights = self.field.nodes(theta, s)
+            verts = self.field.faces[face_ids]
+            t = self.config.diffusion_time
+            table, ridx = fused_terms.row_table(self.field, verts, nodes, rows)
+            coef, norm = fused_terms.KernelTerms.apply(
+                table, ridx, self.field, nodes, bary, weights, t
+            )
+            return coef, norm, nodes, weights, self._embedding(face_ids, bary)
         phi_c = self.field.eigenfunctions(face_ids, bary, theta, s, rows)
         lam = self.field.eigenvalues(theta, s)
         coef = torch.exp(-self.config.diffusion_time * lam) * phi_c
@@ -542,9 +575,8 @@ class HeatKernelModel(nn.Module):
             tables = self._tables_for(face_ids)
             if tables is not None:
                 return self._blend_tables(tables, face_ids, bary, return_aux)
-        emb_y = self.field.embedding_at(face_ids, bary)
-        cand = self._knn.search(emb_y, k_s + KNN_MARGIN)
-        cand, d2 = _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)
+        emb_y = self._embedding(face_ids, bary.detach())
+        cand, d2 = self._nearest(emb_y, k_s)
         return self._blend(face_ids, bary, cand, return_aux, d2)
 
     def albedo_bruteforce(
@@ -588,6 +620,9 @@ class HeatKernelModel(nn.Module):
 
     def _blend(self, face_ids, bary, cand, return_aux, d2=None):
         if cand is not None and self._grad_needed() and not bary.requires_grad:
+            if self._compiled_training():
+                out, kid, rho_top = self._train_blend(face_ids, bary, cand, d2)
+                return (out, {"indices": kid, "rho": rho_top}) if return_aux else out
             kid, rho_top = self._top_responses(face_ids, bary, cand, d2)
         else:
             if cand is None:
@@ -638,15 +673,7 @@ class HeatKernelModel(nn.Module):
         a graph (:class:`_PairResponse`). Per-kernel terms are computed once, with a graph,
         for the batch's unique candidates; their backward touches only rows with gradient.
         """
-        uniq, local = torch.unique(cand, return_inverse=True)
-        if uniq.shape[0] * 2 >= len(self) and self._rows.fits(self.field, len(self)):
-            # Most kernels are candidates (training batches): all of them, from cached rows.
-            uniq = torch.arange(len(self), device=cand.device)
-            local = cand
-            terms = self._spectral_terms(uniq, self._rows)
-        else:
-            terms = self._spectral_terms(uniq)
-        coef, norm, nodes, weights, emb_c = terms
+        uniq, local, terms = self._candidate_terms(cand)
         k_c = min(self.config.k_blend, cand.shape[1])
         detached = [t.detach() for t in terms]
         parts = [
@@ -665,6 +692,59 @@ class HeatKernelModel(nn.Module):
             for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
         ]
         top, dots, blend = (torch.cat(x) for x in zip(*parts, strict=True))
+        return self._pair_graph(face_ids, bary, uniq, terms, top, dots, blend)
+
+    def _candidate_terms(self, cand: torch.Tensor):
+        """``(uniq, local, terms)``: the batch's candidate kernels ``uniq``, ``cand`` as rows
+        of them, and their per-kernel terms with a graph (all kernels, from cached rows,
+        when most are candidates: training batches)."""
+        uniq, local = torch.unique(cand, return_inverse=True)
+        if uniq.shape[0] * 2 >= len(self) and self._rows.fits(self.field, len(self)):
+            uniq = torch.arange(len(self), device=cand.device)
+            return uniq, cand, self._spectral_terms(uniq, self._rows)
+        return uniq, local, self._spectral_terms(uniq)
+
+    def _compiled_training(self) -> bool:
+        return fused_rank.available(self.colors.device, self.colors.dtype) and fused_rank.fits(
+            self.field
+        )
+
+    def _train_blend(self, face_ids, bary, cand, d2):
+        """Albedo of a differentiable batch, compiled (``kernels.fused_rank`` ranks the
+        ``K_s`` candidates without a graph, ``kernels.fused_pairs`` blends the chosen ``K_c``
+        with an analytic backward): ``(out, kid, rho)``, the same mathematics as
+        :meth:`_top_responses` and the blend after it."""
+        uniq, local, terms = self._candidate_terms(cand)
+        coef, norm, nodes, weights, emb_c = terms
+        k_c = min(self.config.k_blend, cand.shape[1])
+        attrs = [self.threshold, self.sharpness, self.colors]
+        if uniq.shape[0] != len(self):
+            attrs = [a[uniq] for a in attrs]
+        top, dots, blend, _ = fused_rank.rank_pairs(
+            self.field,
+            face_ids,
+            bary.detach(),
+            local,
+            d2,
+            attrs[0].detach(),
+            attrs[1].detach(),
+            coef.detach(),
+            norm.detach(),
+            nodes,
+            weights.detach(),
+            self.config.sigma_b,
+            k_c,
+        )
+        emb_y = self._embedding(face_ids, bary.detach())
+        out, rho = fused_pairs.PairBlend.apply(
+            top, dots, blend, emb_y, self.config.sigma_b, coef, norm, weights, emb_c, *attrs,
+            self.base_color,
+        )  # fmt: skip
+        return out, uniq[top], rho
+
+    def _pair_graph(self, face_ids, bary, uniq, terms, top, dots, blend):
+        """``(kid, rho)`` of the chosen pairs ``top`` (rows of ``terms``), with a graph."""
+        coef, norm, nodes, weights, emb_c = terms
         h = _PairResponse.apply(coef[top], weights[top], dots, blend)
         emb_y = self.field.embedding_at(face_ids, bary)
         d2_top = ((emb_y[:, None, :] - emb_c[top]) ** 2).sum(dim=2)

@@ -1,0 +1,109 @@
+"""What the compiled (numba) evaluation paths share: availability, compilation, threads.
+
+``kernels.fused_blend`` (no-grad queries from face tables) and ``kernels.fused_rank``
+(the training step's candidate search and ranking) are loops over points compiled with
+numba: each point's work is a few thousand flops spread over a dozen small arrays, which
+torch can only do as a dozen full passes through memory. numba is imported on first use
+(its import costs ~0.5-1 s that a CLI call should not pay) and its compiled code is cached
+on disk, so later processes load it in well under a second.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import torch
+
+HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+
+#: ``HKTEX_FUSED_BLEND=0`` turns every compiled path off (the torch paths answer).
+ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
+
+_LOCK = threading.Lock()
+
+
+def available(device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether compiled paths can answer for tensors on ``device`` in ``dtype`` (CPU float32)."""
+    return ENABLED and HAVE_NUMBA and device.type == "cpu" and dtype == torch.float32
+
+
+#: LLVM flags that let a float32 dot product run in SIMD lanes (re-associated sums, fused
+#: multiply-adds); none that change NaN, infinity or signed-zero handling.
+SIMD_SUMS = frozenset({"reassoc", "contract"})
+
+
+def jit(fn: Callable, inline: bool = False, fastmath: frozenset = frozenset()) -> Callable:
+    """``fn`` compiled by numba (``nogil``, cached on disk where a cache folder is writable)."""
+    import numba
+
+    flags = set(fastmath) or False
+    with _LOCK:
+        if inline:
+            return numba.njit(inline="always", fastmath=flags)(fn)
+        try:
+            return numba.njit(nogil=True, cache=True, fastmath=flags)(fn)
+        except RuntimeError:  # no writable cache location: compile in each process
+            return numba.njit(nogil=True, fastmath=flags)(fn)
+
+
+def unit(v):
+    """``v`` (float32) clamped to [0, 1]."""
+    return max(min(v, np.float32(1.0)), np.float32(0.0))
+
+
+def select(a, n, k):
+    """The ``k``-th smallest (0-based) of ``a[:n]``, reordering ``a`` in place (Hoare's
+    quickselect, middle pivot; ``np.partition`` would allocate a copy per point)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+def array(t: torch.Tensor) -> np.ndarray:
+    """A C-contiguous numpy view of a CPU tensor without a graph (a copy only when it is not
+    contiguous)."""
+    t = t.detach()
+    return t.numpy() if t.is_contiguous() else np.ascontiguousarray(t.numpy())
+
+
+def run_threaded(run: Callable[[slice], None], n: int, min_points: int) -> None:
+    """``run(slice)`` over ``range(n)`` in up to ``torch.get_num_threads()`` threads, each with
+    at least ``min_points`` points (the compiled loops release the GIL)."""
+    threads = max(1, min(torch.get_num_threads(), n // max(1, min_points)))
+    if threads == 1:
+        run(slice(0, n))
+        return
+    bounds = np.linspace(0, n, threads + 1).astype(int)
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]))
+
+
+def run_each(run: Callable[[int], None], threads: int) -> None:
+    """``run(i)`` for ``i < threads``, each in its own thread (one: in this one)."""
+    if threads == 1:
+        run(0)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, range(threads)))

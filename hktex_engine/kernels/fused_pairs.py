@@ -1,0 +1,209 @@
+"""The differentiable blend of each point's chosen pairs, compiled, with its analytic backward.
+
+After the ranking (``kernels.fused_rank``) a training point keeps ``K_c`` kernels; for each
+pair ``(p, j)`` with the saved ``dots_c = coef_j . Phi_p[n_jc]`` and ``blend = sum_c w_jc
+Phi_p[n_jc]``:
+
+    h   = sum_c w_jc dots_c                   d2 = |e_j - e_p|^2
+    r   = h exp(-d2 / (2 sigma_B^2)) / norm_j
+    rho = S(r; eps_j, k_j) = clamp((sig(k (r - eps)) - sig(-k eps)) / (sig(k (1 - eps)) - sig(-k eps)), 0, 1)
+    out = clamp(a_0 + sum_j rho_j a_j / max(1, sum_j rho_j), 0, 1)
+
+and backward by the chain rule through each line, with ``dh/dcoef_j = blend`` and
+``dh/dw_jc = dots_c``; clamps pass the gradient where torch's do (inside, ends included).
+Gradients reach the per-kernel rows (coef, norm, weights, centre embedding, threshold,
+sharpness, colour) and ``a_0``; the point side is constant (batches whose query barycentrics
+need a gradient take the torch path).
+
+Why hand-written: through autograd these are a dozen passes over ``(P, K_c, K)`` and
+``(P, K_c, D)`` gathered blocks and their scatter-add backward, a third of a training step
+after the ranking was compiled; here one loop per point forward and one backward, threads
+with private accumulators summed at the end (so no two threads write one kernel's row).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from hktex_engine.kernels import compiled
+
+#: Points per thread below which one thread does the call.
+THREAD_MIN_POINTS = 1024
+
+
+def _sig(x):
+    return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-x)))
+
+
+def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base, scale, out, rho, pre, total):  # fmt: skip
+    k_c = top.shape[1]
+    one = np.float32(1.0)
+    for p in range(top.shape[0]):
+        a0 = np.float32(0.0)
+        a1 = np.float32(0.0)
+        a2 = np.float32(0.0)
+        tot = np.float32(0.0)
+        for t in range(k_c):
+            j = top[p, t]
+            h = np.float32(0.0)
+            for c in range(4):
+                h += weights[j, c] * dots[p, t, c]
+            d2 = np.float32(0.0)
+            for d in range(emb_c.shape[1]):
+                diff = emb_y[p, d] - emb_c[j, d]
+                d2 += diff * diff
+            r = h * np.float32(math.exp(-d2 / scale)) / norm[j]
+            e, k = thr[j], sharp[j]
+            lo = _sig(-k * e)
+            hi = _sig(k * (one - e))
+            u = (_sig(k * (r - e)) - lo) / (hi - lo)
+            v = max(min(u, one), np.float32(0.0))
+            rho[p, t] = v
+            a0 += v * colors[j, 0]
+            a1 += v * colors[j, 1]
+            a2 += v * colors[j, 2]
+            tot += v
+        total[p] = tot
+        den = tot if tot > one else one
+        pre[p, 0] = base[0] + a0 / den
+        pre[p, 1] = base[1] + a1 / den
+        pre[p, 2] = base[2] + a2 / den
+        for i in range(3):
+            out[p, i] = max(min(pre[p, i], one), np.float32(0.0))
+
+
+def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, scale, rho, pre, total, g_out,
+              g_coef, g_norm, g_w, g_emb, g_thr, g_sharp, g_col, g_base):  # fmt: skip
+    """Accumulates into the ``g_*`` arrays (this thread's own)."""
+    k_c = top.shape[1]
+    kk = coef.shape[1]
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    g = np.empty(3, np.float32)
+    for p in range(top.shape[0]):
+        for i in range(3):
+            x = pre[p, i]
+            g[i] = g_out[p, i] if (x >= zero and x <= one) else zero
+        g_base[0] += g[0]
+        g_base[1] += g[1]
+        g_base[2] += g[2]
+        tot = total[p]
+        den = tot if tot > one else one
+        # d out / d rho_t = a_t / den - [tot >= 1] acc / den^2, acc = sum rho a
+        acc_g = zero
+        if tot >= one:
+            for t in range(k_c):
+                j = top[p, t]
+                acc_g += rho[p, t] * (
+                    colors[j, 0] * g[0] + colors[j, 1] * g[1] + colors[j, 2] * g[2]
+                )
+        for t in range(k_c):
+            j = top[p, t]
+            v = rho[p, t]
+            ag = colors[j, 0] * g[0] + colors[j, 1] * g[1] + colors[j, 2] * g[2]
+            g_rho = ag / den
+            if tot >= one:
+                g_rho -= acc_g / (den * den)
+            for i in range(3):
+                g_col[j, i] += v * g[i] / den
+            # soft step
+            e, k = thr[j], sharp[j]
+            h = zero
+            for c in range(4):
+                h += weights[j, c] * dots[p, t, c]
+            d2 = zero
+            for d in range(emb_c.shape[1]):
+                diff = emb_y[p, d] - emb_c[j, d]
+                d2 += diff * diff
+            w = np.float32(math.exp(-d2 / scale))
+            r = h * w / norm[j]
+            lo = _sig(-k * e)
+            hi = _sig(k * (one - e))
+            sr = _sig(k * (r - e))
+            u = (sr - lo) / (hi - lo)
+            if not (u >= zero and u <= one):
+                continue
+            gu = g_rho / (hi - lo)
+            ds = sr * (one - sr)
+            dl = lo * (one - lo)
+            dh = hi * (one - hi)
+            # u = (sr - lo) / (hi - lo)
+            g_r = gu * k * ds
+            g_k = gu * ((r - e) * ds + e * dl - u * ((one - e) * dh + e * dl))
+            g_e = gu * (-k * ds + k * dl - u * (-k * dh + k * dl))
+            g_thr[j] += g_e
+            g_sharp[j] += g_k
+            # r = h w / norm
+            g_h = g_r * w / norm[j]
+            g_d2 = -g_r * r / scale
+            g_norm[j] += -g_r * r / norm[j]
+            for c in range(4):
+                g_w[j, c] += g_h * dots[p, t, c]
+            for q in range(kk):
+                g_coef[j, q] += g_h * blend[p, t, q]
+            for d in range(emb_c.shape[1]):
+                g_emb[j, d] += 2 * g_d2 * (emb_c[j, d] - emb_y[p, d])
+
+
+_FORWARD = None
+_BACKWARD = None
+
+
+def _kernels():
+    global _FORWARD, _BACKWARD, _sig
+    if _FORWARD is None:
+        _sig = compiled.jit(_sig, inline=True)
+        _FORWARD = compiled.jit(_forward, fastmath=compiled.SIMD_SUMS)
+        _BACKWARD = compiled.jit(_backward, fastmath=compiled.SIMD_SUMS)
+    return _FORWARD, _BACKWARD
+
+
+class PairBlend(torch.autograd.Function):
+    """``(albedo (P, 3), rho (P, K_c))`` of the chosen pairs ``top`` (rows of the per-kernel
+    arrays) with saved ``dots``/``blend``; see the module doc."""
+
+    @staticmethod
+    def forward(ctx, top, dots, blend, emb_y, sigma_b, coef, norm, weights, emb_c, thr, sharp, colors, base):  # type: ignore[override]  # fmt: skip
+        forward, _ = _kernels()
+        p = top.shape[0]
+        arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base)]  # fmt: skip
+        out = np.empty((p, 3), np.float32)
+        rho = np.empty(top.shape, np.float32)
+        pre = np.empty((p, 3), np.float32)
+        total = np.empty(p, np.float32)
+        scale = np.float32(2.0 * sigma_b**2)
+
+        def run(sl: slice) -> None:
+            forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, out[sl], rho[sl], pre[sl], total[sl])  # fmt: skip
+
+        compiled.run_threaded(run, p, THREAD_MIN_POINTS)
+        rho_t = torch.from_numpy(rho)
+        ctx.scale = scale
+        ctx.save_for_backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho_t, torch.from_numpy(pre), torch.from_numpy(total))  # fmt: skip
+        ctx.mark_non_differentiable(rho_t)
+        return torch.from_numpy(out), rho_t
+
+    @staticmethod
+    def backward(ctx, g_out, _g_rho):  # type: ignore[override]
+        _, backward = _kernels()
+        saved = [compiled.array(x) for x in ctx.saved_tensors]
+        top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho, pre, total = saved  # fmt: skip
+        g = compiled.array(g_out.to(torch.float32))
+        p = top.shape[0]
+        shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape, colors.shape, (3,)]  # fmt: skip
+        threads = max(1, min(torch.get_num_threads(), p // THREAD_MIN_POINTS))
+        accs = [[np.zeros(s, np.float32) for s in shapes] for _ in range(threads)]
+        bounds = np.linspace(0, p, threads + 1).astype(int)
+        slices = [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]
+
+        def run(i: int) -> None:
+            sl = slices[i]
+            backward(top[sl], dots[sl], blend[sl], emb_y[sl], coef, norm, weights, emb_c, thr, sharp, colors, ctx.scale, rho[sl], pre[sl], total[sl], g[sl], *accs[i])  # fmt: skip
+
+        compiled.run_each(run, threads)
+        grads = [sum(a[n] for a in accs[1:]) + accs[0][n] for n in range(len(shapes))]
+        grads = [torch.from_numpy(np.ascontiguousarray(x)) for x in grads]
+        return (None, None, None, None, None, *grads)

@@ -1,0 +1,352 @@
+"""The training step's no-grad half, compiled: exact ``K_s`` nearest centres and the ranking.
+
+A training step evaluates ``K_s`` candidates per point but differentiates only the ``K_c``
+that reach the blend (``HeatKernelModel._top_responses``). The no-grad half was the step's
+cost (docs/kernels.md, "Training step"): a faiss search with a per-step index rebuild, the
+exact cut over a ``(P, K_s + margin, D)`` difference block, and a node matmul that computes
+every kernel's response on all ``G`` grid nodes when it needs 4. Here each point is one
+compiled loop (numba, ``nogil``; threads split the points):
+
+- :func:`nearest`: the exact ``K_s`` nearest centres under the tie rule (distance, then
+  kernel id). One BLAS product gives ``|c|^2 - 2 q.c`` for a chunk of points (what faiss'
+  flat index computes); per point a quickselect keeps the ``K_s + margin`` smallest, their
+  distances are recomputed directly (a function of the pair alone, so the cut does not depend
+  on the rest of the batch), and the cut is checked as ``model._exact_cut`` checks it: a row
+  whose ``K_s``-th distance is within the product's round-off of the farthest fetched one is
+  cut over all centres instead.
+- :func:`rank_pairs`: ``h_j(y)`` of the cut from the point's eigenfunctions on the nodes its
+  candidates use (computed once per node), ``r``, the soft step, the ``K_c`` choice under the
+  tie rule, and what the chosen pairs' backward needs (``dots`` and ``blend`` as
+  ``model._rank_pairs`` returns them).
+
+Same mathematics and rule as the torch path; sums run in another order, so values agree to
+float32 round-off and the choices are the same wherever no two keys sit within it (exact
+ties, e.g. clones, are broken by the rule as there). CPU float32 only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from hktex_engine.kernels import compiled
+
+#: Relative margin on the ``K_s``-th squared distance before a cluster is skipped: far above
+#: the float64 round-off of the bounds and the float32 rounding of the distances (6e-8).
+BOUND_MARGIN = 1e-6
+#: Centres per block when assigning them to clusters (bounds the block to 8192 x clusters).
+ASSIGN_ROWS = 8192
+#: Points per thread below which one thread does the call.
+THREAD_MIN_POINTS = 256
+
+
+def available(device: torch.device, dtype: torch.dtype) -> bool:
+    """Whether the compiled training path can answer on ``device`` in ``dtype``."""
+    return compiled.available(device, dtype)
+
+
+def _exact_d2(emb_y, p, emb_c, j):
+    """``|c_j - y_p|^2`` summed in float64 (deterministic per pair), as float32."""
+    acc = 0.0
+    for d in range(emb_c.shape[1]):
+        diff = np.float64(emb_c[j, d]) - np.float64(emb_y[p, d])
+        acc += diff * diff
+    return np.float32(acc)
+
+
+def _sort_by_rule(ids, d2, n):
+    """Sort ``ids[:n]``/``d2[:n]`` in place by distance, then id (insertion sort: n ~ 100)."""
+    for a in range(1, n):
+        i, v = ids[a], d2[a]
+        b = a - 1
+        while b >= 0 and (d2[b] > v or (d2[b] == v and ids[b] > i)):
+            ids[b + 1] = ids[b]
+            d2[b + 1] = d2[b]
+            b -= 1
+        ids[b + 1] = i
+        d2[b + 1] = v
+
+
+def _worse(d_a, i_a, d_b, i_b):
+    """Whether entry a ranks after entry b under the rule (distance, then id)."""
+    return d_a > d_b or (d_a == d_b and i_a > i_b)
+
+
+def _heap_offer(hd, hi, size, k, d, i):
+    """Offer ``(d, i)`` to a max-heap (worst at the root) of the ``k`` best; returns its size."""
+    if size == k:
+        if not _worse(hd[0], hi[0], d, i):
+            return size
+        pos = 0  # replace the root, then sift down
+        while True:
+            child = 2 * pos + 1
+            if child >= k:
+                break
+            if child + 1 < k and _worse(hd[child + 1], hi[child + 1], hd[child], hi[child]):
+                child += 1
+            if not _worse(hd[child], hi[child], d, i):
+                break
+            hd[pos], hi[pos] = hd[child], hi[child]
+            pos = child
+        hd[pos], hi[pos] = d, i
+        return size
+    pos = size  # append, then sift up
+    while pos > 0:
+        parent = (pos - 1) // 2
+        if not _worse(d, i, hd[parent], hi[parent]):
+            break
+        hd[pos], hi[pos] = hd[parent], hi[parent]
+        pos = parent
+    hd[pos], hi[pos] = d, i
+    return size + 1
+
+
+def _nearest_clustered(emb_y, emb_c, order, starts, centroid, radius, k, out_id, out_d2):
+    """Per point: the exact ``k`` nearest centres, scanning clusters nearest bound first.
+
+    A cluster's members are at least ``max(0, |y - mu| - R)`` from the point (triangle
+    inequality); once ``k`` distances are known, every cluster whose bound is above the
+    ``k``-th (by a relative margin far above the bound's round-off) holds no nearer centre
+    and no tie, so the scan stops there. The ``k`` best so far sit in a heap ordered by the
+    rule, so the ``k``-th is always at hand."""
+    n_cl, dim = centroid.shape[0], emb_c.shape[1]
+    bound = np.empty(n_cl, np.float64)
+    hd = np.empty(k, np.float32)
+    hi = np.empty(k, np.int64)
+    for p in range(emb_y.shape[0]):
+        for c in range(n_cl):
+            acc = 0.0
+            for d in range(dim):
+                diff = centroid[c, d] - np.float64(emb_y[p, d])
+                acc += diff * diff
+            gap = math.sqrt(acc) - radius[c]
+            bound[c] = gap * gap if gap > 0.0 else 0.0
+        size = 0
+        for _ in range(n_cl):
+            c = 0  # the nearest cluster not yet scanned (a few are; a full sort costs more)
+            for a in range(1, n_cl):
+                if bound[a] < bound[c]:
+                    c = a
+            if size == k and bound[c] > np.float64(hd[0]) * (1.0 + BOUND_MARGIN):
+                break
+            bound[c] = np.inf
+            for i in range(starts[c], starts[c + 1]):  # members' rows are contiguous
+                size = _heap_offer(hd, hi, size, k, _exact_d2(emb_y, p, emb_c, i), order[i])
+        _sort_by_rule(hi, hd, k)
+        for i in range(k):
+            out_id[p, i] = hi[i]
+            out_d2[p, i] = hd[i]
+
+
+def _rank_points(
+    verts, bary, local, d2, evecs, coef, norm, nodes, weights, thr, sharp, low, high,
+    scale, k_c, out_top, out_dots, out_blend, out_rho,
+):  # fmt: skip
+    """Per point: responses of its candidates, the ``k_c`` best by the rule, and for those
+    ``dots`` (coef . Phi_y[node]) and ``blend`` (sum_c w_c Phi_y[node_c])."""
+    n_nodes, k = evecs.shape[1], evecs.shape[2]
+    c_count = local.shape[1]
+    phi = np.empty((n_nodes, k), np.float32)
+    dots = np.empty((c_count, 4), np.float32)
+    rho = np.empty(c_count, np.float32)
+    top = np.empty(k_c, np.int64)
+    one = np.float32(1.0)
+    for p in range(local.shape[0]):
+        v0, v1, v2 = verts[p, 0], verts[p, 1], verts[p, 2]
+        b0, b1, b2 = bary[p, 0], bary[p, 1], bary[p, 2]
+        # the point's eigenfunctions on every node: three contiguous (G, K) vertex blocks,
+        # read in order (a candidate-driven order of nodes measured slower: cache misses)
+        for g in range(n_nodes):
+            for q in range(k):
+                phi[g, q] = b0 * evecs[v0, g, q] + b1 * evecs[v1, g, q] + b2 * evecs[v2, g, q]
+        for i in range(c_count):
+            j = local[p, i]
+            h = np.float32(0.0)
+            for c in range(4):
+                g = nodes[j, c]
+                acc = np.float32(0.0)
+                for q in range(k):
+                    acc += coef[j, q] * phi[g, q]
+                dots[i, c] = acc
+                h += acc * weights[j, c]
+            w = np.float32(math.exp(np.float32(-d2[p, i] / scale)))
+            x = h * w / norm[j]
+            s = one / (one + np.float32(math.exp(-(sharp[j] * (x - thr[j])))))
+            rho[i] = _unit((s - low[j]) / (high[j] - low[j]))
+        # K_c choice: largest rho, then smallest distance, then id; candidates come nearest
+        # first (distance, then id), so a later entry loses an exact tie on both
+        filled = 0
+        for i in range(c_count):
+            if filled == k_c:
+                last = top[k_c - 1]
+                if not (rho[i] > rho[last] or (rho[i] == rho[last] and d2[p, i] < d2[p, last])):
+                    continue
+                slot = k_c - 1
+            else:
+                slot = filled
+                filled += 1
+            while slot > 0:
+                a = top[slot - 1]
+                if rho[i] > rho[a] or (rho[i] == rho[a] and d2[p, i] < d2[p, a]):
+                    top[slot] = a
+                    slot -= 1
+                else:
+                    break
+            top[slot] = i
+        for t in range(k_c):
+            i = top[t]
+            j = local[p, i]
+            out_top[p, t] = j
+            out_rho[p, t] = rho[i]
+            for c in range(4):
+                out_dots[p, t, c] = dots[i, c]
+            for q in range(k):
+                acc = np.float32(0.0)
+                for c in range(4):
+                    acc += weights[j, c] * phi[nodes[j, c], q]
+                out_blend[p, t, q] = acc
+
+
+_NEAREST = None
+_RANK = None
+_select = compiled.select
+_unit = compiled.unit
+_exact_d2_c = _exact_d2
+
+
+def _kernels():
+    """The compiled loops (built on first use, then loaded from numba's disk cache)."""
+    global _NEAREST, _RANK, _select, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
+    if _RANK is None:
+        _worse = compiled.jit(_worse, inline=True)
+        _heap_offer = compiled.jit(_heap_offer, inline=True)
+        _unit = compiled.jit(compiled.unit, inline=True)
+        _select = compiled.jit(compiled.select)
+        _exact_d2 = compiled.jit(_exact_d2_c, inline=True, fastmath=compiled.SIMD_SUMS)
+        _sort_by_rule = compiled.jit(_sort_by_rule)
+        _NEAREST = compiled.jit(_nearest_clustered, fastmath=compiled.SIMD_SUMS)
+        _RANK = compiled.jit(_rank_points, fastmath=compiled.SIMD_SUMS)
+    return _NEAREST, _RANK
+
+
+class Clusters:
+    """Centre embeddings grouped for :func:`nearest`: ``ceil(2 sqrt(N))`` clusters around
+    centres drawn with a fixed seed, each centre in its nearest one, with the clusters'
+    centroids and radii (float64). Any grouping gives exact answers; a good one only makes
+    the scan shorter (per point ~2 sqrt(N) bounds plus a few clusters' members, against N
+    distances for a flat search). Built once per set of centre positions."""
+
+    def __init__(self, emb_c: torch.Tensor) -> None:
+        c = emb_c.detach().to(torch.float32).contiguous()
+        n = c.shape[0]
+        n_cl = max(1, min(n, math.ceil(2.0 * math.sqrt(n))))
+        seeds = torch.from_numpy(np.random.default_rng(0).choice(n, n_cl, replace=False))
+        s = c[seeds]
+        ssq = (s * s).sum(dim=1)
+        labels = torch.empty(n, dtype=torch.long)
+        for start in range(0, n, ASSIGN_ROWS):
+            block = torch.addmm(ssq[None, :], c[start : start + ASSIGN_ROWS], s.T, alpha=-2.0)
+            labels[start : start + ASSIGN_ROWS] = block.argmin(dim=1)
+        order = torch.argsort(labels, stable=True)
+        counts = torch.bincount(labels, minlength=n_cl)
+        c64 = c.to(torch.float64)
+        centroid = torch.zeros((n_cl, c.shape[1]), dtype=torch.float64).index_add_(0, labels, c64)
+        centroid /= counts.clamp(min=1)[:, None].to(torch.float64)
+        dist = torch.linalg.norm(c64 - centroid[labels], dim=1)
+        radius = torch.zeros(n_cl, dtype=torch.float64).scatter_reduce_(0, labels, dist, "amax")
+        self.emb = c[order].numpy()  # rows by cluster: a scan reads them in sequence
+        self.order = order.numpy()
+        self.starts = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
+        self.centroid = centroid.numpy()
+        self.radius = radius.numpy()
+
+
+def nearest(
+    emb_y: torch.Tensor, emb_c: torch.Tensor | Clusters, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact ``k`` nearest centres of each point under the tie rule: ``(ids (P, k),
+    d2 (P, k))``, nearest first (``model._exact_cut``'s contract, without an index).
+    ``emb_c``: the centre embeddings, or their :class:`Clusters` when the caller keeps them."""
+    kernel, _ = _kernels()
+    cl = emb_c if isinstance(emb_c, Clusters) else Clusters(emb_c)
+    y = compiled.array(emb_y.to(torch.float32))
+    p = y.shape[0]
+    k = min(int(k), cl.emb.shape[0])
+    out_id = np.empty((p, k), np.int64)
+    out_d2 = np.empty((p, k), np.float32)
+
+    def run(sl: slice) -> None:
+        kernel(y[sl], cl.emb, cl.order, cl.starts, cl.centroid, cl.radius, k, out_id[sl], out_d2[sl])  # fmt: skip
+
+    compiled.run_threaded(run, p, THREAD_MIN_POINTS)
+    return torch.from_numpy(out_id), torch.from_numpy(out_d2)
+
+
+def rank_pairs(
+    field,
+    face_ids: torch.Tensor,
+    bary: torch.Tensor,
+    local: torch.Tensor,
+    d2: torch.Tensor,
+    threshold: torch.Tensor,
+    sharpness: torch.Tensor,
+    coef: torch.Tensor,
+    norm: torch.Tensor,
+    nodes: torch.Tensor,
+    weights: torch.Tensor,
+    sigma_b: float,
+    k_c: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``model._rank_pairs``' results (``top`` (P, k_c) rows of the per-kernel terms, ``dots``
+    (P, k_c, 4), ``blend`` (P, k_c, K)) and the chosen ``rho`` (P, k_c), in rule order.
+
+    ``local`` (P, C): each point's candidates as rows of the terms, nearest first (distance,
+    then kernel id); ``d2`` their squared embedding distances."""
+    _, kernel = _kernels()
+    evecs = field_evecs32(field)
+    verts = field.faces[face_ids].numpy()
+    low = torch.sigmoid(-sharpness * threshold)  # soft_step's own expressions (same bits)
+    high = torch.sigmoid(sharpness * (1 - threshold))
+    attrs = [
+        compiled.array(t) for t in (coef, norm, nodes, weights, threshold, sharpness, low, high)
+    ]
+    b = compiled.array(bary.to(torch.float32))
+    loc = compiled.array(local)
+    dd = compiled.array(d2.to(torch.float32))
+    p, kk = loc.shape[0], evecs.shape[2]
+    k_c = min(int(k_c), loc.shape[1])
+    top = np.empty((p, k_c), np.int64)
+    dots = np.empty((p, k_c, 4), np.float32)
+    blend = np.empty((p, k_c, kk), np.float32)
+    rho = np.empty((p, k_c), np.float32)
+    scale = 2.0 * sigma_b**2
+
+    def run(sl: slice) -> None:
+        kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, *attrs, scale, k_c, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip
+
+    compiled.run_threaded(run, p, THREAD_MIN_POINTS)
+    return (torch.from_numpy(top), torch.from_numpy(dots), torch.from_numpy(blend), torch.from_numpy(rho))  # fmt: skip
+
+
+#: Largest float32 copy of a float16 eigenvector grid the training path makes (bytes);
+#: above it the torch path runs (it up-casts the rows it gathers).
+EVECS32_MAX_BYTES = 2 * 2**30
+
+
+def field_evecs32(field) -> np.ndarray:
+    """The field's eigenvector grid as a float32 array (numba has no float16): the grid
+    itself when it is float32, else a copy made once per field."""
+    cached = getattr(field, "_evecs32", None)
+    if cached is None:
+        e = field.evecs
+        cached = compiled.array(e) if e.dtype == torch.float32 else e.to(torch.float32).numpy()
+        field._evecs32 = cached
+    return cached
+
+
+def fits(field) -> bool:
+    """Whether the field's grid can take the compiled training path (its float32 size)."""
+    e = field.evecs
+    return e.dtype == torch.float32 or e.numel() * 4 <= EVECS32_MAX_BYTES
