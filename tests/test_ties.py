@@ -107,7 +107,7 @@ def _check(out, aux, case, dtype=torch.float64):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("backend", ["torch", "faiss"])
+@pytest.mark.parametrize("backend", ["auto", "torch", "faiss"])
 def test_knn_and_bruteforce_follow_the_rule(spectra, tie_case, backend, dtype):
     field = SpectralField(spectra, device="cpu", dtype=dtype)
     model = make_model(field, tie_case["kp"], CONFIG, backend)
@@ -131,17 +131,20 @@ def test_vertex_tables_follow_the_rule(spectra, tie_case, dtype, monkeypatch):
     assert model._vtables is not None
 
 
-def test_training_forward_follows_the_rule(spectra, field64, tie_case):
-    """With gradients on (the fit's path: rank without a graph, differentiate the winners)
-    and with query barycentrics needing a gradient (plain autograd)."""
-    model = make_model(field64, tie_case["kp"], CONFIG)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_training_forward_follows_the_rule(spectra, tie_case, dtype):
+    """With gradients on (the fit's path: rank without a graph, differentiate the winners;
+    compiled in float32, kernels.fused_rank) and with query barycentrics needing a gradient
+    (plain autograd)."""
+    field = SpectralField(spectra, device="cpu", dtype=dtype)
+    model = make_model(field, tie_case["kp"], CONFIG)
     f, b = tie_case["face_ids"], tie_case["bary"]
     out, aux = model.albedo(f, b, return_aux=True)
     assert out.requires_grad
-    _check(out.detach(), aux, tie_case)
-    bq = torch.as_tensor(b).requires_grad_(True)
+    _check(out.detach(), aux, tie_case, dtype)
+    bq = torch.as_tensor(b, dtype=dtype).requires_grad_(True)
     out, aux = model.albedo(f, bq, return_aux=True)
-    _check(out.detach(), aux, tie_case)
+    _check(out.detach(), aux, tie_case, dtype)
 
 
 def test_query_follows_the_rule(spectra, tie_case):
