@@ -238,3 +238,19 @@ def test_other_dtypes_and_devices_keep_the_torch_path(field64):
     assert not fused_rank.available(torch.device("cpu"), torch.float64)
     assert not fused_rank.available(torch.device("cuda"), torch.float32)
     assert not fused_terms.available(field64, torch.float64)
+
+
+def test_sparse_no_grad_queries_equal_the_torch_path(field32, spectra3, monkeypatch):
+    """The per-point no-grad path (no candidate tables) ranks through the same compiled loop."""
+    from hktex_engine.kernels import model as kernels_mod
+
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "never")
+    kp = make_params(spectra3, 300, seed=22)
+    f, b = _points(spectra3, 800, 7)
+    with torch.no_grad():
+        got, aux = make_model(field32, kp, CONFIG).albedo(f, b, return_aux=True)
+        monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
+        ref, ref_aux = make_model(field32, kp, CONFIG).albedo(f, b, return_aux=True)
+    np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-5)
+    assert (aux["indices"] == ref_aux["indices"]).all(dim=1).float().mean() > 0.999
+    np.testing.assert_allclose(aux["rho"].numpy(), ref_aux["rho"].numpy(), atol=1e-5)

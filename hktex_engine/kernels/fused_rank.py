@@ -142,7 +142,7 @@ def _nearest_clustered(emb_y, emb_c, order, starts, centroid, radius, k, out_id,
 
 def _rank_points(
     verts, bary, local, d2, evecs, coef, norm, nodes, weights, thr, sharp, low, high,
-    scale, k_c, out_top, out_dots, out_blend, out_rho,
+    scale, k_c, keep, out_top, out_dots, out_blend, out_rho,
 ):  # fmt: skip
     """Per point: responses of its candidates, the ``k_c`` best by the rule, and for those
     ``dots`` (coef . Phi_y[node]) and ``blend`` (sum_c w_c Phi_y[node_c])."""
@@ -200,6 +200,8 @@ def _rank_points(
             j = local[p, i]
             out_top[p, t] = j
             out_rho[p, t] = rho[i]
+            if not keep:
+                continue
             for c in range(4):
                 out_dots[p, t, c] = dots[i, c]
             for q in range(k):
@@ -298,12 +300,14 @@ def rank_pairs(
     weights: torch.Tensor,
     sigma_b: float,
     k_c: int,
+    keep: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``model._rank_pairs``' results (``top`` (P, k_c) rows of the per-kernel terms, ``dots``
     (P, k_c, 4), ``blend`` (P, k_c, K)) and the chosen ``rho`` (P, k_c), in rule order.
 
     ``local`` (P, C): each point's candidates as rows of the terms, nearest first (distance,
-    then kernel id); ``d2`` their squared embedding distances."""
+    then kernel id); ``d2`` their squared embedding distances. ``keep=False``: no ``dots``
+    and ``blend`` (empty; a no-grad blend needs only ``top`` and ``rho``)."""
     _, kernel = _kernels()
     evecs = field_evecs32(field)
     verts = field.faces[face_ids].numpy()
@@ -318,13 +322,13 @@ def rank_pairs(
     p, kk = loc.shape[0], evecs.shape[2]
     k_c = min(int(k_c), loc.shape[1])
     top = np.empty((p, k_c), np.int64)
-    dots = np.empty((p, k_c, 4), np.float32)
-    blend = np.empty((p, k_c, kk), np.float32)
+    dots = np.empty((p, k_c, 4) if keep else (p, 0, 4), np.float32)
+    blend = np.empty((p, k_c, kk) if keep else (p, 0, kk), np.float32)
     rho = np.empty((p, k_c), np.float32)
     scale = 2.0 * sigma_b**2
 
     def run(sl: slice) -> None:
-        kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, *attrs, scale, k_c, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip
+        kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, *attrs, scale, k_c, keep, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip
 
     compiled.run_threaded(run, p, THREAD_MIN_POINTS)
     return (torch.from_numpy(top), torch.from_numpy(dots), torch.from_numpy(blend), torch.from_numpy(rho))  # fmt: skip

@@ -628,7 +628,11 @@ class HeatKernelModel(nn.Module):
             if cand is None:
                 n = face_ids.shape[0]
                 cand = torch.arange(len(self), device=self.field.device).expand(n, -1)
-            if not self._grad_needed():
+            plain = not self._grad_needed() and not (torch.is_grad_enabled() and bary.requires_grad)
+            if plain and d2 is not None and self._compiled_training():
+                kid, rho_top = self._ranked_no_grad(face_ids, bary, cand, d2)
+            elif not self._grad_needed():
+                kid = None
                 self._ensure_cache()
                 r, d2 = _pair_ratio(
                     face_ids,
@@ -642,15 +646,17 @@ class HeatKernelModel(nn.Module):
                 )
                 rho = soft_step(r, self.threshold[cand], self.sharpness[cand])
             else:
+                kid = None
                 rho, cand = self.responses(face_ids, bary, cand)
                 if d2 is None:
                     self._ensure_knn()
                     emb_y = self.field.embedding_at(face_ids, bary.detach())
                     d2 = ((emb_y[:, None, :] - self._centre_emb[cand]) ** 2).sum(dim=2)
-            k_c = min(self.config.k_blend, rho.shape[1])
-            pos = select_by_rule(rho.detach(), d2.detach(), cand, k_c)
-            rho_top = rho.gather(1, pos)
-            kid = cand.gather(1, pos)
+            if kid is None:
+                k_c = min(self.config.k_blend, rho.shape[1])
+                pos = select_by_rule(rho.detach(), d2.detach(), cand, k_c)
+                rho_top = rho.gather(1, pos)
+                kid = cand.gather(1, pos)
         weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
         denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
         out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
@@ -708,6 +714,18 @@ class HeatKernelModel(nn.Module):
         return fused_rank.available(self.colors.device, self.colors.dtype) and fused_rank.fits(
             self.field
         )
+
+    @torch.no_grad()
+    def _ranked_no_grad(self, face_ids, bary, cand, d2):
+        """``(kid, rho)`` of each point's ``K_c`` chosen kernels, compiled (sparse no-grad
+        queries: points too few per vertex for candidate tables)."""
+        self._ensure_cache()
+        coef, norm, nodes, weights, _ = self._terms
+        top, _, _, rho = fused_rank.rank_pairs(
+            self.field, face_ids, bary, cand, d2, self.threshold, self.sharpness, coef, norm,
+            nodes, weights, self.config.sigma_b, self.config.k_blend, keep=False,
+        )  # fmt: skip
+        return top, rho
 
     def _train_blend(self, face_ids, bary, cand, d2):
         """Albedo of a differentiable batch, compiled (``kernels.fused_rank`` ranks the
