@@ -81,6 +81,33 @@ def select(a, n, k):
     return a[k]
 
 
+def choose_by_rule(rho, d2, n, k, top):
+    """Positions ``top[:q]`` (``q = min(k, n)``) of the ``k`` best of ``rho[:n]`` in rule
+    order: largest ``rho``, then smallest ``d2``, then position (the callers' entries come in
+    kernel-id order or nearest first by the rule, so a later entry loses an exact tie on
+    both); a sorted buffer, entries that cannot enter it cost one comparison. Returns ``q``."""
+    q = k if k < n else n
+    filled = 0
+    for i in range(n):
+        if filled == q:
+            last = top[q - 1]
+            if not (rho[i] > rho[last] or (rho[i] == rho[last] and d2[i] < d2[last])):
+                continue
+            slot = q - 1
+        else:
+            slot = filled
+            filled += 1
+        while slot > 0:
+            a = top[slot - 1]
+            if rho[i] > rho[a] or (rho[i] == rho[a] and d2[i] < d2[a]):
+                top[slot] = a
+                slot -= 1
+            else:
+                break
+        top[slot] = i
+    return q
+
+
 def array(t: torch.Tensor) -> np.ndarray:
     """A C-contiguous numpy view of a CPU tensor without a graph (a copy only when it is not
     contiguous)."""

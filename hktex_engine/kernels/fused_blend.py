@@ -38,6 +38,7 @@ THREAD_MIN_POINTS = 2048
 
 _unit = compiled.unit
 _select = compiled.select
+_choose = compiled.choose_by_rule
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
@@ -105,28 +106,8 @@ def _blend_points(
             v = (s - low[k]) / (high[k] - low[k])
             rho[i] = _unit(v)
             cd2[i] = d2[j]
-        # K_c choice: largest rho, then smallest distance, then kernel id (a sorted buffer)
-        q = k_c if k_c < m else m
-        filled = 0
-        for i in range(m):
-            if filled == q:
-                w_ = top[q - 1]
-                if not (
-                    rho[i] > rho[w_] or (rho[i] == rho[w_] and cd2[i] < cd2[w_])
-                ):  # later entries lose exact ties (their kernel id is larger)
-                    continue
-                slot = q - 1
-            else:
-                slot = filled
-                filled += 1
-            while slot > 0:
-                a = top[slot - 1]
-                if rho[i] > rho[a] or (rho[i] == rho[a] and cd2[i] < cd2[a]):
-                    top[slot] = a
-                    slot -= 1
-                else:
-                    break
-            top[slot] = i
+        # K_c choice: largest rho, then smallest distance, then kernel id (row order)
+        q = _choose(rho, cd2, m, k_c, top)
         acc0 = zero
         acc1 = zero
         acc2 = zero
@@ -154,8 +135,9 @@ _COMPILED = None
 
 def _kernel():
     """The compiled ``_blend_points`` (built on first use)."""
-    global _COMPILED, _select, _unit
+    global _COMPILED, _select, _unit, _choose
     if _COMPILED is None:
+        _choose = compiled.jit(compiled.choose_by_rule, inline=True)
         _unit = compiled.jit(compiled.unit, inline=True)
         _select = compiled.jit(compiled.select)
         _COMPILED = compiled.jit(_blend_points)

@@ -1,23 +1,21 @@
-"""The training step's no-grad half, compiled: exact ``K_s`` nearest centres and the ranking.
+"""The no-grad half of a training step, compiled: exact ``K_s`` nearest centres and ranking.
 
 A training step evaluates ``K_s`` candidates per point but differentiates only the ``K_c``
-that reach the blend (``HeatKernelModel._top_responses``). The no-grad half was the step's
-cost (docs/kernels.md, "Training step"): a faiss search with a per-step index rebuild, the
-exact cut over a ``(P, K_s + margin, D)`` difference block, and a node matmul that computes
-every kernel's response on all ``G`` grid nodes when it needs 4. Here each point is one
-compiled loop (numba, ``nogil``; threads split the points):
+that reach the blend. Through torch the no-grad half was most of the step (docs/kernels.md,
+"The compiled training step"): a faiss search with an index rebuilt every step (the centres
+move), the exact cut over a ``(P, K_s + margin, D)`` difference block, and a node matmul
+that computes every candidate's response on all ``G`` grid nodes where it needs 4. Here each
+point is one compiled loop (numba, ``nogil``; threads split the points):
 
 - :func:`nearest`: the exact ``K_s`` nearest centres under the tie rule (distance, then
-  kernel id). One BLAS product gives ``|c|^2 - 2 q.c`` for a chunk of points (what faiss'
-  flat index computes); per point a quickselect keeps the ``K_s + margin`` smallest, their
-  distances are recomputed directly (a function of the pair alone, so the cut does not depend
-  on the rest of the batch), and the cut is checked as ``model._exact_cut`` checks it: a row
-  whose ``K_s``-th distance is within the product's round-off of the farthest fetched one is
-  cut over all centres instead.
-- :func:`rank_pairs`: ``h_j(y)`` of the cut from the point's eigenfunctions on the nodes its
-  candidates use (computed once per node), ``r``, the soft step, the ``K_c`` choice under the
-  tie rule, and what the chosen pairs' backward needs (``dots`` and ``blend`` as
-  ``model._rank_pairs`` returns them).
+  kernel id), by a scan of :class:`Clusters` in order of a triangle-inequality bound that
+  stops when no unscanned cluster can hold a nearer centre or a tie. Distances are computed
+  directly per pair (a function of the pair alone, so the cut does not depend on the rest
+  of the batch), the ``K_s`` best kept in a heap ordered by the rule. On surface embeddings
+  a point scans ~2 sqrt(N) bounds and a few clusters' members instead of N centres.
+- :func:`rank_pairs`: ``h_j(y)`` of the cut from the point's eigenfunctions on the grid
+  nodes, ``r``, the soft step, the ``K_c`` choice under the tie rule, and what the chosen
+  pairs' backward needs (``dots`` and ``blend``, as ``model._rank_pairs`` returns them).
 
 Same mathematics and rule as the torch path; sums run in another order, so values agree to
 float32 round-off and the choices are the same wherever no two keys sit within it (exact
@@ -175,26 +173,8 @@ def _rank_points(
             x = h * w / norm[j]
             s = one / (one + np.float32(math.exp(-(sharp[j] * (x - thr[j])))))
             rho[i] = _unit((s - low[j]) / (high[j] - low[j]))
-        # K_c choice: largest rho, then smallest distance, then id; candidates come nearest
-        # first (distance, then id), so a later entry loses an exact tie on both
-        filled = 0
-        for i in range(c_count):
-            if filled == k_c:
-                last = top[k_c - 1]
-                if not (rho[i] > rho[last] or (rho[i] == rho[last] and d2[p, i] < d2[p, last])):
-                    continue
-                slot = k_c - 1
-            else:
-                slot = filled
-                filled += 1
-            while slot > 0:
-                a = top[slot - 1]
-                if rho[i] > rho[a] or (rho[i] == rho[a] and d2[p, i] < d2[p, a]):
-                    top[slot] = a
-                    slot -= 1
-                else:
-                    break
-            top[slot] = i
+        # K_c choice by the rule; candidates come nearest first (distance, then id)
+        _choose(rho, d2[p], c_count, k_c, top)
         for t in range(k_c):
             i = top[t]
             j = local[p, i]
@@ -215,13 +195,16 @@ _NEAREST = None
 _RANK = None
 _select = compiled.select
 _unit = compiled.unit
+_choose = compiled.choose_by_rule
 _exact_d2_c = _exact_d2
 
 
 def _kernels():
     """The compiled loops (built on first use, then loaded from numba's disk cache)."""
     global _NEAREST, _RANK, _select, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
+    global _choose
     if _RANK is None:
+        _choose = compiled.jit(compiled.choose_by_rule, inline=True)
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
         _unit = compiled.jit(compiled.unit, inline=True)
