@@ -63,6 +63,15 @@ def test_nearest_equals_a_brute_force_cut(field32, spectra3):
             assert (np.diff(ids, axis=1)[tied] > 0).all()
             if k < c.shape[0]:
                 assert (ids == ref_ids).mean() > 0.999
+    # any grouping is exact (training keeps an earlier one while the centres move): a
+    # random assignment to 7 clusters, empty ones included
+    labels = np.random.default_rng(1).integers(0, 9, emb_c.shape[0]) % 7
+    labels[labels == 3] = 8  # clusters 3 and 7 stay empty
+    cl = fused_rank.Clusters(emb_c, labels)
+    ids, d2 = fused_rank.nearest(emb_y, cl, 16)
+    ref_ids, ref_d2 = _exhaustive_cut(emb_y, emb_c, 16)
+    np.testing.assert_array_equal(np.sort(ids.numpy(), 1), np.sort(ref_ids.numpy(), 1))
+    np.testing.assert_allclose(d2.numpy(), ref_d2.numpy(), rtol=1e-5, atol=1e-9)
 
 
 def test_kernel_terms_against_autograd_and_finite_differences(field32, spectra3):

@@ -193,6 +193,7 @@ def _rank_points(
 
 _NEAREST = None
 _RANK = None
+_GROUP = None
 _select = compiled.select
 _unit = compiled.unit
 _choose = compiled.choose_by_rule
@@ -202,8 +203,9 @@ _exact_d2_c = _exact_d2
 def _kernels():
     """The compiled loops (built on first use, then loaded from numba's disk cache)."""
     global _NEAREST, _RANK, _select, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
-    global _choose
+    global _choose, _GROUP
     if _RANK is None:
+        _GROUP = compiled.jit(_group)
         _choose = compiled.jit(compiled.choose_by_rule, inline=True)
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
@@ -216,36 +218,82 @@ def _kernels():
     return _NEAREST, _RANK
 
 
+def _group(emb, labels, n_cl, order, starts, centroid, radius, emb_sorted):
+    """Centres grouped by ``labels``: a counting sort (``order``, ``starts``), the rows in
+    that order, and each cluster's centroid and radius in float64."""
+    n, dim = emb.shape
+    counts = np.zeros(n_cl + 1, np.int64)
+    for j in range(n):
+        counts[labels[j] + 1] += 1
+    for c in range(n_cl):
+        counts[c + 1] += counts[c]
+    starts[:] = counts
+    fill = counts[:n_cl].copy()
+    for j in range(n):
+        c = labels[j]
+        order[fill[c]] = j
+        fill[c] += 1
+    centroid[:] = 0.0
+    for i in range(n):
+        j = order[i]
+        emb_sorted[i] = emb[j]
+    for c in range(n_cl):
+        size = starts[c + 1] - starts[c]
+        if size == 0:
+            radius[c] = 0.0
+            continue
+        for i in range(starts[c], starts[c + 1]):
+            for d in range(dim):
+                centroid[c, d] += emb_sorted[i, d]
+        for d in range(dim):
+            centroid[c, d] /= size
+        far = 0.0
+        for i in range(starts[c], starts[c + 1]):
+            acc = 0.0
+            for d in range(dim):
+                diff = np.float64(emb_sorted[i, d]) - centroid[c, d]
+                acc += diff * diff
+            far = max(far, acc)
+        radius[c] = math.sqrt(far)
+
+
 class Clusters:
     """Centre embeddings grouped for :func:`nearest`: ``ceil(2 sqrt(N))`` clusters around
     centres drawn with a fixed seed, each centre in its nearest one, with the clusters'
     centroids and radii (float64). Any grouping gives exact answers; a good one only makes
     the scan shorter (per point ~2 sqrt(N) bounds plus a few clusters' members, against N
-    distances for a flat search). Built once per set of centre positions."""
+    distances for a flat search). ``labels``: keep an earlier grouping of the same centres
+    (training: the centres move a little each step; centroids and radii are recomputed, the
+    assignment is not)."""
 
-    def __init__(self, emb_c: torch.Tensor) -> None:
+    def __init__(self, emb_c: torch.Tensor, labels: np.ndarray | None = None) -> None:
         c = emb_c.detach().to(torch.float32).contiguous()
-        n = c.shape[0]
-        n_cl = max(1, min(n, math.ceil(2.0 * math.sqrt(n))))
-        seeds = torch.from_numpy(np.random.default_rng(0).choice(n, n_cl, replace=False))
-        s = c[seeds]
-        ssq = (s * s).sum(dim=1)
-        labels = torch.empty(n, dtype=torch.long)
-        for start in range(0, n, ASSIGN_ROWS):
-            block = torch.addmm(ssq[None, :], c[start : start + ASSIGN_ROWS], s.T, alpha=-2.0)
-            labels[start : start + ASSIGN_ROWS] = block.argmin(dim=1)
-        order = torch.argsort(labels, stable=True)
-        counts = torch.bincount(labels, minlength=n_cl)
-        c64 = c.to(torch.float64)
-        centroid = torch.zeros((n_cl, c.shape[1]), dtype=torch.float64).index_add_(0, labels, c64)
-        centroid /= counts.clamp(min=1)[:, None].to(torch.float64)
-        dist = torch.linalg.norm(c64 - centroid[labels], dim=1)
-        radius = torch.zeros(n_cl, dtype=torch.float64).scatter_reduce_(0, labels, dist, "amax")
-        self.emb = c[order].numpy()  # rows by cluster: a scan reads them in sequence
-        self.order = order.numpy()
-        self.starts = np.concatenate([[0], np.cumsum(counts.numpy())]).astype(np.int64)
-        self.centroid = centroid.numpy()
-        self.radius = radius.numpy()
+        n, dim = c.shape
+        if labels is None or labels.shape[0] != n:
+            labels = _assign(c)
+        n_cl = int(labels.max()) + 1
+        self.labels = labels
+        self.order = np.empty(n, np.int64)
+        self.starts = np.empty(n_cl + 1, np.int64)
+        self.centroid = np.empty((n_cl, dim), np.float64)
+        self.radius = np.empty(n_cl, np.float64)
+        self.emb = np.empty((n, dim), np.float32)  # rows by cluster: a scan reads them in turn
+        _kernels()
+        _GROUP(c.numpy(), labels, n_cl, self.order, self.starts, self.centroid, self.radius, self.emb)  # fmt: skip
+
+
+def _assign(c: torch.Tensor) -> np.ndarray:
+    """Each centre's nearest of ``ceil(2 sqrt(N))`` seeds (fixed seed), by BLAS blocks."""
+    n = c.shape[0]
+    n_cl = max(1, min(n, math.ceil(2.0 * math.sqrt(n))))
+    seeds = torch.from_numpy(np.random.default_rng(0).choice(n, n_cl, replace=False))
+    s = c[seeds]
+    ssq = (s * s).sum(dim=1)
+    labels = torch.empty(n, dtype=torch.long)
+    for start in range(0, n, ASSIGN_ROWS):
+        block = torch.addmm(ssq[None, :], c[start : start + ASSIGN_ROWS], s.T, alpha=-2.0)
+        labels[start : start + ASSIGN_ROWS] = block.argmin(dim=1)
+    return labels.numpy()
 
 
 def nearest(

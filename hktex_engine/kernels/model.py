@@ -78,6 +78,9 @@ TABLES_MAX_BYTES = 1024 * 2**20
 CUT_ROUNDOFF = 1e-5
 #: Bytes of one chunk of per-pair differences in :func:`_exhaustive_cut`.
 EXHAUSTIVE_CHUNK_BYTES = 32 * 2**20
+#: Builds of the compiled search's cluster grouping between fresh assignments (the others
+#: keep the last assignment and recompute centroids and radii; any grouping is exact).
+CLUSTER_REGROUP = 50
 #: Tolerance on barycentric rows (sum to one, no negative entries) when validating.
 BARY_TOL = 1e-3
 
@@ -238,6 +241,9 @@ class HeatKernelModel(nn.Module):
         self._vtables_full = False
         self._ftables: FaceTables | None = None
         self._radius: torch.Tensor | None = None
+        self._clusters = None
+        self._cluster_labels: np.ndarray | None = None
+        self._cluster_builds = 0
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -411,6 +417,7 @@ class HeatKernelModel(nn.Module):
             return
         self._centre_emb = self._embedding(self.face_ids, self.bary.detach())
         self._knn = None  # the index is built when a search needs it (_index)
+        self._clusters = None  # likewise the compiled search's grouping (_nearest)
         self._knn_key = key
 
     def _embedding(self, face_ids: torch.Tensor, bary: torch.Tensor) -> torch.Tensor:
@@ -433,7 +440,14 @@ class HeatKernelModel(nn.Module):
         moved), else the index's candidates cut exactly (:func:`_exact_cut`)."""
         self._ensure_knn()
         if self.knn_backend == "auto" and fused_rank.available(emb_y.device, emb_y.dtype):
-            return fused_rank.nearest(emb_y.detach(), self._centre_emb, k_s)
+            if self._clusters is None:
+                # the last grouping is kept while the count is the same (the centres move a
+                # little per step); a fresh one every CLUSTER_REGROUP builds
+                last = self._cluster_labels if self._cluster_builds % CLUSTER_REGROUP else None
+                self._clusters = fused_rank.Clusters(self._centre_emb, last)
+                self._cluster_labels = self._clusters.labels
+                self._cluster_builds += 1
+            return fused_rank.nearest(emb_y.detach(), self._clusters, k_s)
         cand = self._index().search(emb_y, k_s + KNN_MARGIN)
         return _exact_cut(emb_y.detach(), self._centre_emb, cand, k_s)
 
