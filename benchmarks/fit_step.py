@@ -112,6 +112,7 @@ def main() -> None:
     res = {
         "command": "python " + " ".join(sys.argv),
         "machine": machine_info(device="cpu"),
+        "torch": _torch_version(),
         "load_before": load_before,
         "load_after": round(os.getloadavg()[0], 2),
         "args": {k: str(v) for k, v in vars(args).items()},
@@ -125,6 +126,15 @@ def main() -> None:
     print(render_md(res))
 
 
+def _torch_version() -> str:
+    out = subprocess.run(
+        [sys.executable, "-c", "import torch; print(torch.__version__)"],
+        capture_output=True,
+        text=True,
+    )
+    return out.stdout.strip()
+
+
 def render_md(res: dict) -> str:
     a, m = res["args"], res["machine"]
     lines = [
@@ -132,7 +142,7 @@ def render_md(res: dict) -> str:
         "",
         f"Command: `{res['command']}`  ",
         f"Machine: {m.get('cpu', m.get('platform'))}, {m['cpus']} CPU cores, torch "
-        f"{m.get('torch')}, {a['threads']} thread(s); load {res['load_before']} before, "
+        f"{res['torch']}, {a['threads']} thread(s); load {res['load_before']} before, "
         f"{res['load_after']} after.  ",
         f"Fit: `fit_uv` on {a['mesh']}, default preset, {a['kernels']} kernels (budget fixed), "
         f"{a['points']} points per step, {a['steps']} steps; baseline engine at "

@@ -75,6 +75,18 @@ def _backward(table, ridx, evals, nodes, bary, weights, t, coef, phi, decay, g_c
     g_lam = np.empty(k, np.float32)
     for j in range(ridx.shape[0]):
         gn = g_norm[j]
+        if gn == 0.0:  # a kernel no chosen pair used (most, in small batches): no rows to read
+            used = False
+            for q in range(k):
+                if g_coef[j, q] != 0.0:
+                    used = True
+                    break
+            if not used:
+                for v in range(3):
+                    g_bary[j, v] = np.float32(0.0)
+                for c in range(4):
+                    g_w[j, c] = np.float32(0.0)
+                continue
         for q in range(k):
             g_phi[q] = decay[j, q] * g_coef[j, q] + 2 * gn * coef[j, q]
             g_lam[q] = -t * coef[j, q] * (g_coef[j, q] + gn * phi[j, q])
