@@ -184,11 +184,10 @@ def _rank_points(
                 continue
             for c in range(4):
                 out_dots[p, t, c] = dots[i, c]
-            for q in range(k):
-                acc = np.float32(0.0)
-                for c in range(4):
-                    acc += weights[j, c] * phi[nodes[j, c], q]
-                out_blend[p, t, q] = acc
+            g0, g1, g2, g3 = nodes[j, 0], nodes[j, 1], nodes[j, 2], nodes[j, 3]
+            w0, w1, w2, w3 = weights[j, 0], weights[j, 1], weights[j, 2], weights[j, 3]
+            for q in range(k):  # the four node rows in SIMD lanes along q
+                out_blend[p, t, q] = w0 * phi[g0, q] + w1 * phi[g1, q] + w2 * phi[g2, q] + w3 * phi[g3, q]  # fmt: skip
 
 
 _NEAREST = None
