@@ -244,6 +244,8 @@ class HeatKernelModel(nn.Module):
         self._clusters = None
         self._cluster_labels: np.ndarray | None = None
         self._cluster_builds = 0
+        self._roster = 0  # bumped when kernels are removed or added (not when they move)
+        self._cluster_of = -1
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -356,6 +358,7 @@ class HeatKernelModel(nn.Module):
     def select(self, indices: torch.Tensor | np.ndarray) -> HeatKernelModel:
         """Keep only the kernels at ``indices`` (in that order; repeats clone), in place."""
         idx = _long(indices, self.field.device)
+        self._roster += 1
         self.face_ids = self.face_ids[idx]
         for p in self._row_params():
             p.data = p.data[idx]
@@ -377,6 +380,7 @@ class HeatKernelModel(nn.Module):
     ) -> HeatKernelModel:
         """Add kernels at the end (``eta`` in natural units), in place."""
         dev, dt = self.field.device, self.field.dtype
+        self._roster += 1
         self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
         new = [bary, theta, torch.log1p(_float(eta, dev, dt)), threshold, sharpness, colors]
         for p, rows in zip(self._row_params(), new, strict=True):
@@ -443,9 +447,12 @@ class HeatKernelModel(nn.Module):
             if self._clusters is None:
                 # the last grouping is kept while the count is the same (the centres move a
                 # little per step); a fresh one every CLUSTER_REGROUP builds
-                last = self._cluster_labels if self._cluster_builds % CLUSTER_REGROUP else None
+                # (kernels removed or added, select/append, regroup at once: another
+                # kernel's label would make the clusters wide and the scan long)
+                fresh = self._cluster_builds % CLUSTER_REGROUP == 0
+                last = None if fresh or self._cluster_of != self._roster else self._cluster_labels
                 self._clusters = fused_rank.Clusters(self._centre_emb, last)
-                self._cluster_labels = self._clusters.labels
+                self._cluster_labels, self._cluster_of = self._clusters.labels, self._roster
                 self._cluster_builds += 1
             return fused_rank.nearest(emb_y.detach(), self._clusters, k_s)
         cand = self._index().search(emb_y, k_s + KNN_MARGIN)
