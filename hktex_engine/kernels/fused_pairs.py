@@ -38,7 +38,9 @@ def _sig(x):
     return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-x)))
 
 
-def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base, scale, out, rho, pre, total):  # fmt: skip
+def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, colors, base, scale, out, rho, pre, total, r_s, w_s, s_s):  # fmt: skip
+    """Also keeps per pair ``r``, the weight ``w`` and ``sig(k (r - eps))`` (``r_s``, ``w_s``,
+    ``s_s``) for backward; ``low``/``high``: the soft step's ends per kernel."""
     k_c = top.shape[1]
     one = np.float32(1.0)
     for p in range(top.shape[0]):
@@ -55,12 +57,14 @@ def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base, s
             for d in range(emb_c.shape[1]):
                 diff = emb_y[p, d] - emb_c[j, d]
                 d2 += diff * diff
-            r = h * np.float32(math.exp(-d2 / scale)) / norm[j]
-            e, k = thr[j], sharp[j]
-            lo = _sig(-k * e)
-            hi = _sig(k * (one - e))
-            u = (_sig(k * (r - e)) - lo) / (hi - lo)
+            w = np.float32(math.exp(-d2 / scale))
+            r = h * w / norm[j]
+            sr = _sig(sharp[j] * (r - thr[j]))
+            u = (sr - low[j]) / (high[j] - low[j])
             v = max(min(u, one), np.float32(0.0))
+            r_s[p, t] = r
+            w_s[p, t] = w
+            s_s[p, t] = sr
             rho[p, t] = v
             a0 += v * colors[j, 0]
             a1 += v * colors[j, 1]
@@ -75,7 +79,7 @@ def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base, s
             out[p, i] = max(min(pre[p, i], one), np.float32(0.0))
 
 
-def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, scale, rho, pre, total, g_out,
+def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, low, high, colors, scale, rho, pre, total, r_s, w_s, s_s, g_out,
               g_coef, g_norm, g_w, g_emb, g_thr, g_sharp, g_col, g_base):  # fmt: skip
     """Accumulates into the ``g_*`` arrays (this thread's own)."""
     k_c = top.shape[1]
@@ -109,20 +113,10 @@ def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, c
                 g_rho -= acc_g / (den * den)
             for i in range(3):
                 g_col[j, i] += v * g[i] / den
-            # soft step
+            # soft step (r, w and sig(k (r - eps)) as forward computed them)
             e, k = thr[j], sharp[j]
-            h = zero
-            for c in range(4):
-                h += weights[j, c] * dots[p, t, c]
-            d2 = zero
-            for d in range(emb_c.shape[1]):
-                diff = emb_y[p, d] - emb_c[j, d]
-                d2 += diff * diff
-            w = np.float32(math.exp(-d2 / scale))
-            r = h * w / norm[j]
-            lo = _sig(-k * e)
-            hi = _sig(k * (one - e))
-            sr = _sig(k * (r - e))
+            r, w, sr = r_s[p, t], w_s[p, t], s_s[p, t]
+            lo, hi = low[j], high[j]
             u = (sr - lo) / (hi - lo)
             if not (u >= zero and u <= one):
                 continue
@@ -169,20 +163,25 @@ class PairBlend(torch.autograd.Function):
     def forward(ctx, top, dots, blend, emb_y, sigma_b, coef, norm, weights, emb_c, thr, sharp, colors, base):  # type: ignore[override]  # fmt: skip
         forward, _ = _kernels()
         p = top.shape[0]
-        arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, colors, base)]  # fmt: skip
+        # the soft step's ends per kernel, by soft_step's own torch expressions
+        low = torch.sigmoid(-sharp.detach() * thr.detach())
+        high = torch.sigmoid(sharp.detach() * (1 - thr.detach()))
+        arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, colors, base)]  # fmt: skip
         out = np.empty((p, 3), np.float32)
-        rho = np.empty(top.shape, np.float32)
+        rho, r_s, w_s, s_s = (np.empty(top.shape, np.float32) for _ in range(4))
         pre = np.empty((p, 3), np.float32)
         total = np.empty(p, np.float32)
         scale = np.float32(2.0 * sigma_b**2)
 
         def run(sl: slice) -> None:
-            forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, out[sl], rho[sl], pre[sl], total[sl])  # fmt: skip
+            forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, out[sl], rho[sl], pre[sl], total[sl], r_s[sl], w_s[sl], s_s[sl])  # fmt: skip
 
         compiled.run_threaded(run, p, THREAD_MIN_POINTS)
         rho_t = torch.from_numpy(rho)
         ctx.scale = scale
-        ctx.save_for_backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho_t, torch.from_numpy(pre), torch.from_numpy(total))  # fmt: skip
+        ctx.per_pair = [pre, total, r_s, w_s, s_s]
+        ctx.ends = [compiled.array(low), compiled.array(high)]
+        ctx.save_for_backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho_t)  # fmt: skip
         ctx.mark_non_differentiable(rho_t)
         return torch.from_numpy(out), rho_t
 
@@ -190,7 +189,9 @@ class PairBlend(torch.autograd.Function):
     def backward(ctx, g_out, _g_rho):  # type: ignore[override]
         _, backward = _kernels()
         saved = [compiled.array(x) for x in ctx.saved_tensors]
-        top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho, pre, total = saved  # fmt: skip
+        top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho = saved
+        pre, total, r_s, w_s, s_s = ctx.per_pair
+        low, high = ctx.ends
         g = compiled.array(g_out.to(torch.float32))
         p = top.shape[0]
         shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape, colors.shape, (3,)]  # fmt: skip
@@ -201,7 +202,7 @@ class PairBlend(torch.autograd.Function):
 
         def run(i: int) -> None:
             sl = slices[i]
-            backward(top[sl], dots[sl], blend[sl], emb_y[sl], coef, norm, weights, emb_c, thr, sharp, colors, ctx.scale, rho[sl], pre[sl], total[sl], g[sl], *accs[i])  # fmt: skip
+            backward(top[sl], dots[sl], blend[sl], emb_y[sl], coef, norm, weights, emb_c, thr, sharp, low, high, colors, ctx.scale, rho[sl], pre[sl], total[sl], r_s[sl], w_s[sl], s_s[sl], g[sl], *accs[i])  # fmt: skip
 
         compiled.run_each(run, threads)
         grads = [sum(a[n] for a in accs[1:]) + accs[0][n] for n in range(len(shapes))]
