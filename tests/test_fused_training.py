@@ -263,3 +263,24 @@ def test_sparse_no_grad_queries_equal_the_torch_path(field32, spectra3, monkeypa
     np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-5)
     assert (aux["indices"] == ref_aux["indices"]).all(dim=1).float().mean() > 0.999
     np.testing.assert_allclose(aux["rho"].numpy(), ref_aux["rho"].numpy(), atol=1e-5)
+
+
+def test_float16_grids_are_not_copied_by_sparse_queries(spectra3, monkeypatch):
+    """A service holds float16 grids memory-mapped and shared between workers: sparse no-grad
+    queries keep the torch path there instead of making a private float32 copy; training
+    makes the copy (once per field) and runs compiled."""
+    import dataclasses
+
+    from hktex_engine.kernels import model as kernels_mod
+
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "never")
+    half = dataclasses.replace(spectra3, evecs=np.asarray(spectra3.evecs, dtype=np.float16))
+    field = SpectralField(half, device="cpu", dtype=torch.float32)
+    assert field.evecs.dtype == torch.float16
+    model = make_model(field, make_params(half, 200, seed=4), CONFIG)
+    f, b = _points(half, 300, 8)
+    with torch.no_grad():
+        model.albedo(f, b)
+    assert getattr(field, "_evecs32", None) is None
+    model.albedo(f, b).sum().backward()
+    assert field._evecs32.dtype == np.float32 and model.colors.grad is not None

@@ -160,7 +160,7 @@ def test_row_cache_regathers_exactly_the_changed_points(spectra, field64):
         nodes, _ = field64.nodes(theta, s)
         verts = field64.faces[face_ids]
         got = cache.rows(field64, verts, nodes)
-        expect = interpolation._gather_rows(field64.evecs, verts, nodes, torch.float64)
+        expect = interpolation.gather_rows(field64.evecs, verts, nodes, torch.float64)
         assert torch.equal(got, expect)
 
     check()

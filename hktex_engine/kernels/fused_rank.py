@@ -380,6 +380,13 @@ def field_evecs32(field) -> np.ndarray:
     return cached
 
 
+def has_float32(field) -> bool:
+    """Whether the field's grid is float32 already, or its copy was made (by training):
+    sparse no-grad queries rank compiled only then, so a query service holding float16
+    grids memory-mapped (shared between workers) makes no private copies of them."""
+    return field.evecs.dtype == torch.float32 or getattr(field, "_evecs32", None) is not None
+
+
 def fits(field) -> bool:
     """Whether the field's grid can take the compiled training path (its float32 size)."""
     e = field.evecs

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from hktex_engine.kernels import compiled
-from hktex_engine.kernels.fused_rank import field_evecs32, fits
+from hktex_engine.kernels.fused_rank import field_evecs32, fits, has_float32
+from hktex_engine.spectra.interpolation import gather_rows
 
 #: Kernels per thread below which one thread does the call.
 THREAD_MIN_KERNELS = 2048
@@ -185,10 +186,16 @@ class Embedding(torch.autograd.Function):
 def row_table(field, verts: torch.Tensor, nodes: torch.Tensor, rows=None):
     """``(table (R, K) float32, ridx (U, 12))`` for :class:`KernelTerms`: the kernels' rows
     of a ``RowCache`` (``rows``: contiguous, read in sequence) or of the grid itself."""
-    if rows is not None:
-        block = rows.rows(field, verts, nodes)  # (U, 12, K): rows v * 4 + c
+    if rows is not None or not has_float32(field):
+        # the rows gathered (and up-cast) contiguously: the row cache's, or a block of this
+        # call's own when the grid is float16 and has no float32 copy (a query service's
+        # memory-mapped grids are not copied per process)
+        if rows is not None:
+            block = rows.rows(field, verts, nodes)  # (U, 12, K): rows v * 4 + c
+        else:
+            block = gather_rows(field.evecs, verts, nodes, torch.float32)
         u = block.shape[0]
-        return compiled.array(block.view(u * 12, -1)), np.arange(u * 12, dtype=np.int64).reshape(u, 12)  # fmt: skip
+        return compiled.array(block.reshape(u * 12, -1)), np.arange(u * 12, dtype=np.int64).reshape(u, 12)  # fmt: skip
     evecs = field_evecs32(field)
     g, k = evecs.shape[1], evecs.shape[2]
     ridx = (verts[:, :, None] * g + nodes[:, None, :]).reshape(-1, 12)

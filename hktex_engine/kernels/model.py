@@ -650,7 +650,8 @@ class HeatKernelModel(nn.Module):
                 n = face_ids.shape[0]
                 cand = torch.arange(len(self), device=self.field.device).expand(n, -1)
             plain = not self._grad_needed() and not (torch.is_grad_enabled() and bary.requires_grad)
-            if plain and d2 is not None and self._compiled_training():
+            compiled_rank = self._compiled_training() and fused_rank.has_float32(self.field)
+            if plain and d2 is not None and compiled_rank:
                 kid, rho_top = self._ranked_no_grad(face_ids, bary, cand, d2)
             elif not self._grad_needed():
                 kid = None

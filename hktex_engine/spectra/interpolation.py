@@ -98,7 +98,7 @@ class _InterpolatedRows(torch.autograd.Function):
             p4 = torch.empty((n, 4 * k), dtype=out_dtype, device=bary.device)
         for sl in _chunks(n, CHUNK_ROWS):
             if rows_all is None:
-                rows = _gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3 * 4, K)
+                rows = gather_rows(evecs, verts[sl], nodes[sl], out_dtype)  # (c, 3 * 4, K)
             else:
                 rows = rows_all[sl]
             b, w = bary[sl].to(out_dtype), weights[sl].to(out_dtype)
@@ -135,7 +135,7 @@ class _InterpolatedRows(torch.autograd.Function):
         grad_b = torch.zeros_like(bary) if need_b else None
         grad_w = torch.zeros_like(weights) if need_w else None
         for sl in _chunks(verts.shape[0], CHUNK_ROWS):
-            rows = _gather_rows(evecs, verts[sl], nodes[sl], ctx.out_dtype)
+            rows = gather_rows(evecs, verts[sl], nodes[sl], ctx.out_dtype)
             t = torch.bmm(rows, grad_out[sl, :, None]).view(-1, 3, weights.shape[1])
             if need_b:
                 grad_b[sl] = torch.einsum("uvc,uc->uv", t, weights[sl].to(t.dtype))
@@ -176,13 +176,13 @@ class RowCache:
             changed = torch.nonzero((key != self._key).any(dim=1)).squeeze(1)
         for start in range(0, changed.shape[0], CHUNK_ROWS):
             idx = changed[start : start + CHUNK_ROWS]
-            self._rows[idx] = _gather_rows(field.evecs, verts[idx], nodes[idx], field.dtype)
+            self._rows[idx] = gather_rows(field.evecs, verts[idx], nodes[idx], field.dtype)
         self._key = key
         self.regathered = int(changed.shape[0])
         return self._rows
 
 
-def _gather_rows(
+def gather_rows(
     evecs: torch.Tensor, verts: torch.Tensor, nodes: torch.Tensor, dtype: torch.dtype
 ) -> torch.Tensor:
     """``evecs[verts[u, v], nodes[u, c], :]`` as a (U, 3 * 4, K) block in ``dtype``.
