@@ -29,6 +29,12 @@ def test_ladder_narrows_from_the_format_default():
     for wide, narrow in zip(quant.BITS_LADDER, quant.BITS_LADDER[1:], strict=False):
         assert set(wide) == set(narrow) == set(QUANT_BITS)
         assert all(narrow[k] <= wide[k] for k in wide) and narrow != wide
+    # and the steps above it widen from the default, for fits it would cost too much
+    steps = (QUANT_BITS, *quant.WIDER_LADDER)
+    for narrow, wide in zip(steps, steps[1:], strict=False):
+        assert set(wide) == set(QUANT_BITS)
+        assert all(wide[k] >= narrow[k] for k in wide) and narrow != wide
+        assert all(b <= 16 for b in wide.values())
 
 
 def test_budget_picks_the_narrowest_step_within_it(fitted):
@@ -44,17 +50,28 @@ def test_budget_picks_the_narrowest_step_within_it(fitted):
     again = psnr(AlbedoQuery(spectra, q, device="cpu").colors(f, b), target)
     assert nbytes == loose["bytes"] and again == pytest.approx(loose["psnr"], abs=1e-9)
     strict = quant.choose_bits(spectra, res.kernelset, f, b, target, budget_db=-1.0)
-    assert strict["bits"] == QUANT_BITS  # nothing is within a negative budget: the default
-    assert len(strict["tried"]) == 1  # the walk stops at the first step over budget
+    # nothing is within a negative budget: the walk stops at the default, then widens to the
+    # widest step, whose decoded file is what it returns
+    assert [t["bits"] for t in strict["tried"]] == [QUANT_BITS, *quant.WIDER_LADDER]
+    assert strict["bits"] == quant.WIDER_LADDER[-1]
+    assert strict["bytes"] > strict["tried"][0]["bytes"]
+    q, nbytes = quant.roundtrip(res.kernelset, strict["bits"])
+    assert nbytes == strict["bytes"]
+    np.testing.assert_array_equal(q.colors, strict["kernelset"].colors)
+    # the wider codes are closer to the exact set (its own PSNR on the same points)
+    assert strict["psnr"] >= strict["tried"][0]["psnr"] - 1e-6
 
 
 def test_fit_metrics_report_the_chosen_file(fitted):
     _, _, res = fitted
     q = res.metrics["quantisation"]
-    assert q["bits"] in quant.BITS_LADDER
+    assert q["bits"] in quant.BITS_LADDER + quant.WIDER_LADDER
     assert res.metrics["bytes_zip_quantised"] == q["bytes"]
     assert q["bytes"] <= res.metrics["bytes_zip_quantised_default_bits"]
     tried = [t["psnr"] for t in q["tried"]]
+    if q["bits"] not in quant.BITS_LADDER:  # the default lost more than the budget
+        assert q["choice_psnr_exact"] - tried[0] > q["budget_db"]
+        return
     index = quant.BITS_LADDER.index(q["bits"])
     assert q["choice_psnr_exact"] - tried[index] <= q["budget_db"]
     if index + 1 < len(tried):  # the next step was tried and lost more than the budget
