@@ -46,7 +46,8 @@ def available(device: torch.device, dtype: torch.dtype) -> bool:
 
 
 def _exact_d2(emb_y, p, emb_c, j):
-    """``|c_j - y_p|^2`` summed in float64 (deterministic per pair), as float32."""
+    """``|c_j - y_p|^2`` summed in float64 (SIMD lanes, the same order for every call: a
+    function of the pair alone), as float32."""
     acc = 0.0
     for d in range(emb_c.shape[1]):
         diff = np.float64(emb_c[j, d]) - np.float64(emb_y[p, d])
@@ -193,15 +194,13 @@ def _rank_points(
 _NEAREST = None
 _RANK = None
 _GROUP = None
-_select = compiled.select
 _unit = compiled.unit
 _choose = compiled.choose_by_rule
-_exact_d2_c = _exact_d2
 
 
 def _kernels():
     """The compiled loops (built on first use, then loaded from numba's disk cache)."""
-    global _NEAREST, _RANK, _select, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
+    global _NEAREST, _RANK, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
     global _choose, _GROUP
     if _RANK is None:
         _GROUP = compiled.jit(_group)
@@ -209,8 +208,7 @@ def _kernels():
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
         _unit = compiled.jit(compiled.unit, inline=True)
-        _select = compiled.jit(compiled.select)
-        _exact_d2 = compiled.jit(_exact_d2_c, inline=True, fastmath=compiled.SIMD_SUMS)
+        _exact_d2 = compiled.jit(_exact_d2, inline=True, fastmath=compiled.SIMD_SUMS)
         _sort_by_rule = compiled.jit(_sort_by_rule)
         _NEAREST = compiled.jit(_nearest_clustered, fastmath=compiled.SIMD_SUMS)
         _RANK = compiled.jit(_rank_points, fastmath=compiled.SIMD_SUMS)
