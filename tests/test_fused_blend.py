@@ -76,3 +76,27 @@ def test_select_is_the_kth_smallest():
         work = np.concatenate([a, np.full(3, -7.0)])  # the scratch is longer than n
         assert select(work, n, k) == np.sort(a)[k]
         np.testing.assert_array_equal(np.sort(work[:n]), np.sort(a))  # a permutation
+
+
+def test_kth_smallest_against_a_sort():
+    """The sampled selection of the blend's K_s cut (compiled.kth_smallest) against a sort:
+    small k against n (the sampled path, including samples that pass too few entries: sorted
+    and reversed rows), large k (the full quickselect) and heavy ties; the input unchanged."""
+    from hktex_engine.kernels import compiled
+
+    _, _, kth_smallest, _ = compiled.helpers()
+    rng = np.random.default_rng(1)
+    for trial in range(400):
+        n = int(rng.integers(1, 700))
+        k = int(rng.integers(0, n)) if trial % 2 else int(rng.integers(0, max(1, n // 8)))
+        a = rng.standard_normal(n)
+        if trial % 5 == 0:
+            a = np.round(a * 2) / 2  # ties
+        elif trial % 5 == 1:
+            a = np.sort(a)
+        elif trial % 5 == 2:
+            a = np.sort(a)[::-1].copy()
+        before = a.copy()
+        buf = np.empty(n + 2)
+        assert kth_smallest(a, n, k, buf) == np.sort(a)[k]
+        np.testing.assert_array_equal(a, before)

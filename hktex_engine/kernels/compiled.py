@@ -24,7 +24,7 @@ HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 #: ``HKTEX_FUSED_BLEND=0`` turns every compiled path off (the torch paths answer).
 ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
 
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
@@ -81,6 +81,29 @@ def select(a, n, k):
     return a[k]
 
 
+def kth_smallest(a, n, k, buf):
+    """The ``k``-th smallest (0-based) of ``a[:n]``, ``a`` unchanged (``buf``: scratch of
+    ``n``). When ``k`` is small against ``n``, a strided sample's order statistic bounds about
+    twice ``k`` entries, one predictable pass keeps those, and the quickselect runs on them
+    (the ``k + 1`` smallest are all within the bound whenever more than ``k`` entries pass, so
+    the answer is exact); otherwise, or when the sample passes too few, over all ``n``."""
+    stride = 8
+    if n >= 4 * (k + 1):
+        m_s = (n + stride - 1) // stride
+        for i in range(m_s):
+            buf[i] = a[i * stride]
+        bound = select(buf, m_s, min(m_s - 1, 2 * (k + 1) // stride + 2))
+        m = 0
+        for j in range(n):
+            if a[j] <= bound:
+                buf[m] = a[j]
+                m += 1
+        if m > k:
+            return select(buf, m, k)
+    buf[:n] = a[:n]
+    return select(buf, n, k)
+
+
 def choose_by_rule(rho, d2, n, k, top):
     """Positions ``top[:q]`` (``q = min(k, n)``) of the ``k`` best of ``rho[:n]`` in rule
     order: largest ``rho``, then smallest ``d2``, then position (the callers' entries come in
@@ -106,6 +129,25 @@ def choose_by_rule(rho, d2, n, k, top):
                 break
         top[slot] = i
     return q
+
+
+_HELPERS = None
+
+
+def helpers():
+    """The helpers below compiled, once: they replace the plain functions in this module's
+    namespace first, so a helper that calls another (``kth_smallest`` calls ``select``) is
+    compiled against the compiled one. Returns ``(unit, select, kth_smallest,
+    choose_by_rule)``."""
+    global _HELPERS, unit, select, kth_smallest, choose_by_rule
+    with _LOCK:
+        if _HELPERS is None:
+            unit = jit(unit, inline=True)
+            choose_by_rule = jit(choose_by_rule, inline=True)
+            select = jit(select)
+            kth_smallest = jit(kth_smallest)
+            _HELPERS = (unit, select, kth_smallest, choose_by_rule)
+    return _HELPERS
 
 
 def array(t: torch.Tensor) -> np.ndarray:

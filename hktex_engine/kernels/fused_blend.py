@@ -38,6 +38,7 @@ THREAD_MIN_POINTS = 2048
 
 _unit = compiled.unit
 _select = compiled.select
+_kth = compiled.kth_smallest
 _choose = compiled.choose_by_rule
 
 
@@ -77,8 +78,7 @@ def _blend_points(
         # K_s cut: the k_s smallest distances, ties by kernel id (row order is kernel order)
         m = k_s if k_s < n else n
         if m < n:
-            part[:n] = d2[:n]
-            kth = _select(part, n, m - 1)
+            kth = _kth(d2, n, m - 1, part)
             less = 0
             for j in range(n):
                 if d2[j] < kth:
@@ -135,11 +135,9 @@ _COMPILED = None
 
 def _kernel():
     """The compiled ``_blend_points`` (built on first use)."""
-    global _COMPILED, _select, _unit, _choose
+    global _COMPILED, _select, _unit, _choose, _kth
     if _COMPILED is None:
-        _choose = compiled.jit(compiled.choose_by_rule, inline=True)
-        _unit = compiled.jit(compiled.unit, inline=True)
-        _select = compiled.jit(compiled.select)
+        _unit, _select, _kth, _choose = compiled.helpers()
         _COMPILED = compiled.jit(_blend_points)
     return _COMPILED
 

@@ -204,10 +204,9 @@ def _kernels():
     global _choose, _GROUP
     if _RANK is None:
         _GROUP = compiled.jit(_group)
-        _choose = compiled.jit(compiled.choose_by_rule, inline=True)
+        _unit, _, _, _choose = compiled.helpers()
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
-        _unit = compiled.jit(compiled.unit, inline=True)
         _exact_d2 = compiled.jit(_exact_d2, inline=True, fastmath=compiled.SIMD_SUMS)
         _sort_by_rule = compiled.jit(_sort_by_rule)
         _NEAREST = compiled.jit(_nearest_clustered, fastmath=compiled.SIMD_SUMS)
