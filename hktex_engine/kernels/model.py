@@ -445,10 +445,10 @@ class HeatKernelModel(nn.Module):
         self._ensure_knn()
         if self.knn_backend == "auto" and fused_rank.available(emb_y.device, emb_y.dtype):
             if self._clusters is None:
-                # the last grouping is kept while the count is the same (the centres move a
-                # little per step); a fresh one every CLUSTER_REGROUP builds
-                # (kernels removed or added, select/append, regroup at once: another
-                # kernel's label would make the clusters wide and the scan long)
+                # the last grouping is kept while the same kernels only move (a little per
+                # step); a fresh one every CLUSTER_REGROUP builds, and at once when kernels
+                # were removed or added (select/append: stale labels make wide clusters and
+                # a long scan, never a wrong answer)
                 fresh = self._cluster_builds % CLUSTER_REGROUP == 0
                 last = None if fresh or self._cluster_of != self._roster else self._cluster_labels
                 self._clusters = fused_rank.Clusters(self._centre_emb, last)
