@@ -46,7 +46,9 @@ def test_design_matrix_reproduces_the_model_albedo():
 
 def test_solve_matches_dense_lstsq_and_lowers_the_residual():
     """Undamped LSQR equals numpy's dense least squares on the same system (where the
-    clipped ranges are not active), and the fit's residual can only go down."""
+    clipped ranges are not active), and the fit's residual can only go down. Solved to a
+    tight tolerance: at LSQR's default 1e-6 this system (condition number ~400) leaves
+    colours ~2e-3 off, which is the stopping rule, not the set-up under test."""
     mesh, _, model = _setup()
     rng = np.random.default_rng(11)
     state = rng.bit_generator.state
@@ -56,12 +58,12 @@ def test_solve_matches_dense_lstsq_and_lowers_the_residual():
     a = design_matrix(idx, w, len(model)).toarray()
     dense, *_ = np.linalg.lstsq(a, target, rcond=None)
     rng.bit_generator.state = state  # the solve draws the same points
-    out = solve_colours(model, mesh, 3000, rng, damp=0.0, passes=1)
+    out = solve_colours(model, mesh, 3000, rng, damp=0.0, passes=1, tol=1e-10)
     solved = np.concatenate(
         [model.base_color.detach().numpy()[None], model.colors.detach().numpy()]
     )
     inside = np.all((dense[1:] > -1) & (dense[1:] < 1), axis=1)
-    np.testing.assert_allclose(solved[1:][inside], dense[1:][inside], atol=2e-3)
+    np.testing.assert_allclose(solved[1:][inside], dense[1:][inside], atol=1e-6)
     assert out["rmse_after"] < out["rmse_before"]
 
 
