@@ -173,8 +173,13 @@ def child_naive(args: argparse.Namespace) -> dict:
     from scipy.sparse.linalg import eigsh
 
     from hktex_engine.geometry.operators import AlboAssembler
-    from hktex_engine.spectra.eigensolver import eigs_cold, estimate_lambda_k, residuals
-    from hktex_engine.spectra.grid import _NODE_SOLVERS, load_spectra
+    from hktex_engine.spectra.eigensolver import (
+        NODE_SOLVERS,
+        eigs_cold,
+        estimate_lambda_k,
+        residuals,
+    )
+    from hktex_engine.spectra.grid import load_spectra
 
     sp = load_spectra(Path(args.workdir) / "spectra")
     reset_peak()
@@ -198,7 +203,7 @@ def child_naive(args: argparse.Namespace) -> dict:
                 order = np.argsort(vals)
                 vals, vecs = vals[order], vecs[:, order]
             else:
-                vals, vecs, _ = _NODE_SOLVERS[args.solver](L, M, K, est)
+                vals, vecs, _ = NODE_SOLVERS[args.solver](L, M, K, est)
             runs[which] = (time.perf_counter() - t0, vals, vecs)
         t_naive, exact_vals, exact_vecs = runs["naive"]
         t_ours, our_vals, our_vecs = runs["ours"]

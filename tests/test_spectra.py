@@ -211,6 +211,55 @@ def test_block_solver_equals_a_dense_solve_and_plain_eigsh(mesh, shift):
         assert np.linalg.norm(h_a - h_b) < 1e-8 * np.linalg.norm(h_b)
 
 
+@pytest.mark.parametrize("tol", [1e-6, 1e-7])
+def test_grid_tolerance_solve_is_accurate_to_its_storage(mesh, tol):
+    """At a grid's tolerance (GRID_TOL: 1e-6 for float16 storage, 1e-7 for float32) the
+    block solver re-orthogonalises periodically; against a dense generalised eigh and plain
+    eigsh its eigenvalues still agree to ~1e-12 of lambda_K, the basis is M-orthonormal and
+    heat kernels differ by less than float32 rounding of the eigenvectors does."""
+    import scipy.linalg as sla
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import eigsh
+
+    from hktex_engine.spectra.eigensolver import GRID_TOL, eigs_block_lowest
+
+    assert sorted(GRID_TOL.values()) == [1e-7, 1e-6]
+    L, M, _, _, _ = _albo_problem(mesh, 40, 0.7, 15.0)
+    k = 40
+    dense = sla.eigh(L.toarray(), np.diag(M), eigvals_only=True, subset_by_index=(0, k - 1))
+    vals, vecs, method = eigs_block_lowest(L, M, k, dense[-1], tol=tol)
+    assert method == "block"
+    np.testing.assert_allclose(vals, dense, rtol=0, atol=1e-10 * dense[-1])
+    np.testing.assert_allclose(vecs.T @ (M[:, None] * vecs), np.eye(k), atol=1e-8)
+    w, U = eigsh(L, k=k, M=sp.diags(M), sigma=-1e-6)
+    src = np.array([0, 300, 600])
+    for t in (8.133e-4, 0.0625):
+        h_ref = _heat(w, U, src, t)
+        h_f32 = _heat(w, U.astype(np.float32).astype(np.float64), src, t)
+        budget = max(np.linalg.norm(h_f32 - h_ref), 1e-9 * np.linalg.norm(h_ref))
+        assert np.linalg.norm(_heat(vals, vecs, src, t) - h_ref) < 10 * budget
+
+
+def test_lost_orthogonality_is_detected_and_redone(mesh):
+    """Re-orthogonalising too rarely (every fourth block, against the whole basis) lets
+    Lanczos lose orthogonality; the final Gram check catches it and the solve is redone
+    with full re-orthogonalisation, so the answer is right either way."""
+    import scipy.linalg as sla
+
+    from hktex_engine.spectra.eigensolver import eigs_block
+
+    L, M, _, _, _ = _albo_problem(mesh, 40, 0.7, 15.0)
+    k = 40
+    dense = sla.eigh(L.toarray(), np.diag(M), eigvals_only=True, subset_by_index=(0, k - 1))
+    methods = set()
+    for every in (2, 4, 1000):
+        vals, vecs, info = eigs_block(L, M, k, sigma=0.45 * dense[-1], tol=1e-6, full_every=every)
+        methods.add(info.method)
+        np.testing.assert_allclose(vals, dense, rtol=0, atol=1e-9 * dense[-1])
+        np.testing.assert_allclose(vecs.T @ (M[:, None] * vecs), np.eye(k), atol=1e-8)
+    assert "block (re-orthogonalised)" in methods  # the check did fire at least once
+
+
 def test_block_solver_restarts_and_falls_back(mesh):
     """A basis too small to converge without restarting (thick restarts) still gives the
     exact pairs; a mid shift from a far too high estimate is detected and redone below 0."""
@@ -473,3 +522,60 @@ def test_cli_writes_spectra_and_prints_json_summary(mesh, tmp_path, capsys):
     assert main(["spectra", str(tmp_path / "missing.obj"), "-o", str(out)]) == 2
     assert main([*args[:-1], "4,1"]) == 2  # not ascending
     assert "error" in capsys.readouterr().err
+
+
+def test_auto_workers_counts_the_cores_idle_now(monkeypatch):
+    """Free cores are the affinity count minus the cores busy now (sampled from /proc/stat),
+    falling back to the 1-minute load average where that cannot be read."""
+    monkeypatch.setattr(spectra_mod.os, "sched_getaffinity", lambda _: {0, 1, 2, 3})
+    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: 0.3)
+    assert spectra_mod.auto_workers() == 4
+    assert spectra_mod.auto_workers(nodes=3) == 3
+    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: 2.6)
+    assert spectra_mod.auto_workers() == 1
+    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: None)
+    monkeypatch.setattr(spectra_mod.os, "getloadavg", lambda: (1.2, 0.0, 0.0))
+    assert spectra_mod.auto_workers() == 3
+
+
+def test_busy_cores_reads_proc_stat():
+    busy = spectra_mod._busy_cores(0.05)
+    if busy is None:
+        pytest.skip("no /proc/stat here")
+    assert 0.0 <= busy <= spectra_mod.os.cpu_count() + 1e-9
+
+
+def test_in_process_solves_use_one_blas_thread(monkeypatch, mesh):
+    """The block solver ran 2x slower with 2 OpenBLAS threads than with 1, so solves in
+    this process run under a one-thread BLAS limit."""
+    from threadpoolctl import threadpool_info
+
+    seen = []
+
+    def fake(L, mass, k, estimate, solver, tol):
+        seen.append([p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"])
+        return None, None, 0.0, "fake"
+
+    monkeypatch.setattr(spectra_mod, "solve_node_timed", fake)
+    list(spectra_mod._cold_solutions(iter([(None, 4, 1.0, 1e-6)] * 2), mesh.vertices, 1))
+    assert len(seen) == 2 and all(threads and max(threads) == 1 for threads in seen)
+
+
+def test_grid_nodes_are_solved_to_their_storage_tolerance(tiny):
+    from hktex_engine.spectra.eigensolver import GRID_TOL
+
+    assert tiny.manifest["solver"]["tol"] == GRID_TOL[TINY.evecs_dtype] == 1e-7
+
+
+def test_a_spectra_worker_imports_neither_torch_nor_the_mesh_loaders():
+    """What a worker process unpickles (eigensolver.solve_node_timed) imports numpy and
+    scipy only, so workers start in a fraction of a second."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, hktex_engine.spectra.eigensolver as e; e.solve_node_timed; "
+        "print(sorted(m for m in ('torch', 'trimesh', 'PIL') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

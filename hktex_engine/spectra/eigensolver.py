@@ -113,9 +113,16 @@ SLICE_MIN_K = 64
 
 
 def eigs_sliced(
-    L: sp.spmatrix, mass: np.ndarray, k: int, lambda_k_estimate: float | None = None
+    L: sp.spmatrix,
+    mass: np.ndarray,
+    k: int,
+    lambda_k_estimate: float | None = None,
+    tol: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """Lowest ``k`` eigenpairs from two half-size ARPACK runs (spectrum slicing).
+
+    ARPACK runs to machine precision whatever ``tol`` (accepted for a common signature):
+    its tolerance was measured not to save solves (docs/spectra.md).
 
     ARPACK's cost is dominated by orthogonalising ~2k Lanczos vectors (n k^2), so two runs
     of ~k/2 + overlap cost ~0.6 of one run of k (measured 1.5 s vs 2.5 s on bob, K = 256).
@@ -260,6 +267,30 @@ def eigs_warm(
 #: Ritz pair of the shift-invert operator S (ARPACK's own criterion, with its ``tol``).
 BLOCK_TOL = 1e-10
 
+#: The tolerance a spectra grid solves its nodes to, by the storage dtype of its eigenvectors:
+#: the solver's error stays well below what storing the basis costs anyway. Measured on a
+#: 20,000-vertex torus, K = 64, eta 1 / 15 / 200, heat kernels (t = 8.1e-4 and 0.0625, 16
+#: sources) against plain eigsh: float32 rounding of the eigenvectors moves them by 3.6e-8,
+#: float16 by 2.9e-4; tol 1e-7 leaves 2e-9 to 3e-9 and tol 1e-6 2e-7 to 2.5e-7, with
+#: eigenvalues within 5e-13 of lambda_K either way, in 10-20 % fewer iterations than 1e-10.
+GRID_TOL = {"float32": 1e-7, "float16": 1e-6}
+
+#: :func:`eigs_block` at a tolerance of :data:`PERIODIC_REORTH_MIN_TOL` or looser (the grid's
+#: nodes) re-orthogonalises each new block against the whole basis only every
+#: ``FULL_REORTH_EVERY`` blocks (and on both blocks after a restart); in between, twice
+#: against the two newest blocks (the block Lanczos recurrence). Reading the whole basis is
+#: memory-bound and was ~35 % of a solve. Measured on a 20k torus, K = 64, eta 1 / 15 / 200:
+#: every second block keeps the basis orthogonal to ~5e-11 and saves 15-25 % of a solve;
+#: every third block lost orthogonality entirely (ghost copies of converged pairs). At
+#: machine-precision tolerances the residuals came out 4-5x worse and a tiny restarted basis
+#: failed to converge, hence full re-orthogonalisation there. A periodic solve's final basis
+#: is checked and redone with full re-orthogonalisation if it lost orthogonality.
+FULL_REORTH_EVERY = 2
+PERIODIC_REORTH_MIN_TOL = 1e-8
+
+#: Largest ``|X^T M X - I|`` entry accepted from the periodic re-orthogonalisation.
+ORTHOGONALITY_TOL = 1e-8
+
 
 def _orthonormal_block(Z: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """``Z = Q R`` with orthonormal columns by Cholesky QR, twice (CholQR2, BLAS-3).
@@ -295,6 +326,7 @@ def eigs_block(
     max_dim: int | None = None,
     seed: int = 0,
     check_start: float = 1.5,
+    full_every: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
     """Lowest ``k`` eigenpairs by a block shift-invert Krylov-Schur iteration.
 
@@ -307,8 +339,10 @@ def eigs_block(
     from the last coupling block. ARPACK does the same work one vector at a time (BLAS-2),
     which is where its time goes. When the basis reaches ``max_dim`` columns it is restarted
     thickly from its best ``k + block`` Ritz vectors (Krylov-Schur). Works in the symmetric
-    form ``y = M^(1/2) x`` so every inner product is a plain one. Returns the pairs ascending,
-    M-orthonormal, with canonical signs.
+    form ``y = M^(1/2) x`` so every inner product is a plain one. ``full_every``: how often a
+    block is re-orthogonalised against the whole basis (1: every block); None chooses by
+    ``tol`` (:data:`FULL_REORTH_EVERY`).
+    Returns the pairs ascending, M-orthonormal, with canonical signs.
     """
     n = L.shape[0]
     if k >= n - 1:
@@ -322,6 +356,8 @@ def eigs_block(
         vals, vecs = eigs_cold(L, mass, k, sigma=sigma)
         res = float(residuals(L, mass, vals, vecs).max())
         return vals, vecs, SolveInfo("cold (basis too small)", 0, res)
+    if full_every is None:
+        full_every = FULL_REORTH_EVERY if tol >= PERIODIC_REORTH_MIN_TOL else 1
     rng = np.random.default_rng(seed)
     lu = _factor(L, mass, sigma)
     sq = np.sqrt(mass)
@@ -340,6 +376,7 @@ def eigs_block(
     d = b  # columns in the basis
     it = 0
     converged = False
+    fresh = 0  # blocks added since the (re)start
     nu = C = None
     while True:
         it += 1
@@ -347,13 +384,17 @@ def eigs_block(
         # Gram-Schmidt: first against the newest columns (the three-term recurrence holds
         # most of S Q_cur), then once against the whole basis (full re-orthogonalisation):
         # two passes over the basis instead of four for classical Gram-Schmidt twice
-        lo = max(0, cur - b)
+        # (periodically: see FULL_REORTH_EVERY; the block right after a restart couples to
+        # every kept Ritz vector, so it is always taken against the whole basis)
+        lo = 0 if fresh == 0 else max(0, cur - b)
         H = np.zeros((d, b))
         H[lo:d] = Q[:, lo:d].T @ Z
         Z -= Q[:, lo:d] @ H[lo:d]
-        H2 = Q[:, :d].T @ Z
-        Z -= Q[:, :d] @ H2
-        H += H2
+        lo2 = 0 if fresh % full_every == 0 else lo
+        H2 = Q[:, lo2:d].T @ Z
+        Z -= Q[:, lo2:d] @ H2
+        H[lo2:d] += H2
+        fresh += 1
         T[:d, cur : cur + b] = H
         T[cur : cur + b, :d] = H.T
         Znew, R = _orthonormal_block(Z, rng)
@@ -393,7 +434,17 @@ def eigs_block(
         T[keep : keep + b, :keep] = coupling
         T[:keep, keep : keep + b] = coupling.T
         cur, d = keep, keep + b
-    X = (Q[:, :done] @ C[:, :k]) / sq[:, None]
+        fresh = 0
+    Y = Q[:, :done] @ C[:, :k]
+    if converged and full_every > 1:
+        # lost orthogonality shows as ghost copies of converged pairs (small residuals, a
+        # singular Gram matrix): redo such a solve the safe way
+        gram = Y.T @ Y
+        if np.abs(gram - np.eye(k)).max() > ORTHOGONALITY_TOL:
+            vals, X, info = eigs_block(L, mass, k, sigma, tol, block, max_dim, seed, check_start, 1)
+            info.method += " (re-orthogonalised)"
+            return vals, X, info
+    X = Y / sq[:, None]
     vals = 1.0 / nu[:k] + sigma
     order = np.argsort(vals)
     vals, X = vals[order], canonical_signs(_m_normalise(X[:, order], mass))
@@ -409,7 +460,11 @@ def eigs_block(
 
 
 def eigs_block_lowest(
-    L: sp.spmatrix, mass: np.ndarray, k: int, lambda_k_estimate: float | None = None
+    L: sp.spmatrix,
+    mass: np.ndarray,
+    k: int,
+    lambda_k_estimate: float | None = None,
+    tol: float = BLOCK_TOL,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """Lowest ``k`` eigenpairs by :func:`eigs_block` with the shift inside the wanted range.
 
@@ -422,12 +477,13 @@ def eigs_block_lowest(
     """
     if lambda_k_estimate is not None and lambda_k_estimate > 0:
         try:
-            vals, vecs, info = eigs_block(L, mass, k, sigma=MID_SHIFT_FRACTION * lambda_k_estimate)
+            sigma = MID_SHIFT_FRACTION * lambda_k_estimate
+            vals, vecs, info = eigs_block(L, mass, k, sigma=sigma, tol=tol)
         except SpectraError:  # the shift hit an eigenvalue exactly
             vals = None
         if vals is not None and abs(vals[0]) <= 1e-8 * max(abs(vals[-1]), 1.0):
             return vals, vecs, info.method
-    vals, vecs, info = eigs_block(L, mass, k)
+    vals, vecs, info = eigs_block(L, mass, k, tol=tol)
     return vals, vecs, info.method + " (shift below 0)"
 
 
@@ -440,10 +496,36 @@ BLOCK_MIN_VERTICES_PER_PAIR = 40
 
 
 def eigs_node(
-    L: sp.spmatrix, mass: np.ndarray, k: int, lambda_k_estimate: float | None = None
+    L: sp.spmatrix,
+    mass: np.ndarray,
+    k: int,
+    lambda_k_estimate: float | None = None,
+    tol: float = BLOCK_TOL,
 ) -> tuple[np.ndarray, np.ndarray, str]:
     """One grid node's lowest ``k`` pairs by the solver measured faster at this size:
-    :func:`eigs_block_lowest` on big meshes, :func:`eigs_sliced` (ARPACK) on small ones."""
+    :func:`eigs_block_lowest` (to ``tol``) on big meshes, :func:`eigs_sliced` (ARPACK, to
+    machine precision) on small ones."""
     if L.shape[0] >= BLOCK_MIN_VERTICES_PER_PAIR * k:
-        return eigs_block_lowest(L, mass, k, lambda_k_estimate)
+        return eigs_block_lowest(L, mass, k, lambda_k_estimate, tol)
     return eigs_sliced(L, mass, k, lambda_k_estimate)
+
+
+#: The per-node solvers ``compute_spectra(solver=...)`` offers (``warm`` is sequential, so it
+#: is not here: it needs the previous node).
+NODE_SOLVERS = {"auto": eigs_node, "block": eigs_block_lowest, "cold": eigs_sliced}
+
+
+def solve_node_timed(
+    L: sp.csr_matrix,
+    mass: np.ndarray,
+    k: int,
+    estimate: float,
+    solver: str = "auto",
+    tol: float = BLOCK_TOL,
+) -> tuple:
+    """One independent node solve, timed. It lives here, not in ``grid``, because it is what
+    a spectra worker process runs: unpickling it imports only this module (numpy and
+    scipy), not the mesh loaders or torch, so a worker starts in a fraction of a second."""
+    t0 = time.perf_counter()
+    vals, vecs, method = NODE_SOLVERS[solver](L, mass, k, estimate, tol)
+    return vals, vecs, time.perf_counter() - t0, method

@@ -18,11 +18,13 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from itertools import chain
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from threadpoolctl import threadpool_limits
 
 from hktex_engine.config import SpectralConfig
 from hktex_engine.errors import SpectraError
@@ -36,16 +38,15 @@ from hktex_engine.geometry.operators import (
 from hktex_engine.progress import NullProgress, Progress, check_cancel
 from hktex_engine.spectra.alignment import align_basis
 from hktex_engine.spectra.eigensolver import (
+    BLOCK_TOL,
+    GRID_TOL,
+    NODE_SOLVERS,
     SolveInfo,
-    eigs_block_lowest,
-    eigs_node,
     eigs_sliced,
     eigs_warm,
     estimate_lambda_k,
+    solve_node_timed,
 )
-
-#: Per-node solvers of the independent-node path (``solver`` of :func:`compute_spectra`).
-_NODE_SOLVERS = {"auto": eigs_node, "block": eigs_block_lowest, "cold": eigs_sliced}
 
 
 @dataclass
@@ -193,31 +194,25 @@ def _operator_key(theta: float, eta: float) -> tuple[float, float]:
 _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-def _solve_timed(
-    L: sp.csr_matrix, mass: np.ndarray, k: int, estimate: float, solver: str = "auto"
-) -> tuple:
-    """One independent node solve, timed (runs in a worker process when ``workers > 1``)."""
-    t0 = time.perf_counter()
-    vals, vecs, method = _NODE_SOLVERS[solver](L, mass, k, estimate)
-    return vals, vecs, time.perf_counter() - t0, method
-
-
 def _cold_solutions(
-    operators: Iterator[tuple[sp.csr_matrix, float]],
+    tasks: Iterator[tuple[sp.csr_matrix, int, float, float]],
     mass: np.ndarray,
-    k: int,
     workers: int,
     solver: str = "auto",
 ) -> Iterator[tuple]:
-    """Independent solves of ``operators`` in order; with ``workers > 1`` in a process pool.
+    """Independent solves of ``tasks`` (operator, pairs, lambda_k estimate, tolerance) in
+    order; with ``workers > 1`` in a process pool.
 
     At most ``workers + 1`` results are in flight, so memory stays bounded by a few bases
     however large the grid. Worker processes are spawned (not forked) so no BLAS thread
     pool state is inherited.
     """
     if workers <= 1:
-        for L, estimate in operators:
-            yield _solve_timed(L, mass, k, estimate, solver)
+        # one BLAS thread: the block solver's tall-skinny GEMMs ran 2x *slower* with
+        # OpenBLAS's 2 threads than with 1 (20k torus, K = 64: 2.03 s against 1.04 s)
+        with threadpool_limits(limits=1, user_api="blas"):
+            for L, k, estimate, tol in tasks:
+                yield solve_node_timed(L, mass, k, estimate, solver, tol)
         return
     ctx = multiprocessing.get_context("spawn")
     # one BLAS thread per worker (the workers are the parallelism; spawned children read
@@ -229,8 +224,8 @@ def _cold_solutions(
         with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
             pending: deque = deque()
             try:
-                for L, estimate in operators:
-                    pending.append(pool.submit(_solve_timed, L, mass, k, estimate, solver))
+                for L, k, estimate, tol in tasks:
+                    pending.append(pool.submit(solve_node_timed, L, mass, k, estimate, solver, tol))
                     if len(pending) > workers:
                         yield pending.popleft().result()
                 while pending:
@@ -244,18 +239,50 @@ def _cold_solutions(
                 os.environ.pop(v, None)
 
 
+def _busy_cores(window_s: float = 0.25) -> float | None:
+    """Cores busy right now: the non-idle share of CPU time over a short window of
+    ``/proc/stat``, times the core count (None where there is no ``/proc/stat``).
+
+    Why not the 1-minute load average alone: it lags by a minute, so a command started
+    right after other work (a benchmark's previous step, a finished fit) saw a busy
+    machine that was idle by then and ran one worker instead of two.
+    """
+
+    def sample() -> tuple[int, int] | None:
+        try:
+            with open("/proc/stat") as fh:
+                fields = [int(x) for x in fh.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+        return sum(fields), idle
+
+    a = sample()
+    if a is None:
+        return None
+    time.sleep(window_s)
+    b = sample()
+    if b is None or b[0] <= a[0]:
+        return None
+    busy_share = 1.0 - (b[1] - a[1]) / (b[0] - a[0])
+    return busy_share * (os.cpu_count() or 1)
+
+
 def auto_workers(nodes: int | None = None) -> int:
     """Worker processes for independent node solves: the cores this process may use that
-    are not already busy (affinity count minus the 1-minute load average, rounded), at
-    least 1, at most ``nodes``. On an idle 2-core machine that is 2; on a loaded one 1."""
+    are not busy now (affinity count minus the cores busy over the last quarter second,
+    or minus the 1-minute load average where that cannot be read), rounded, at least 1,
+    at most ``nodes``. On an idle 2-core machine that is 2; with a fit running, 1."""
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not on Linux
         cores = os.cpu_count() or 1
-    try:
-        busy = os.getloadavg()[0]
-    except OSError:  # pragma: no cover
-        busy = 0.0
+    busy = _busy_cores()
+    if busy is None:
+        try:
+            busy = os.getloadavg()[0]
+        except OSError:  # pragma: no cover
+            busy = 0.0
     free = max(1, min(cores, int(round(cores - busy))))
     return free if nodes is None else max(1, min(free, nodes))
 
@@ -344,26 +371,35 @@ def compute_spectra(
         t0 = time.perf_counter()
         p = _work_size(config, n) if solver == "warm" else K
         k_first = max(p, need)
-        weyl = 4.0 * np.pi * k_first / mass.sum()  # lambda_k ~ 4 pi k / area on a surface
-        iso_solve = _NODE_SOLVERS.get(solver, eigs_sliced)
-        iso_vals, iso_vecs, _ = iso_solve(cotangent_stiffness(V, F), mass, k_first, weyl)
+        area = mass.sum()
+        weyl = 4.0 * np.pi * k_first / area  # lambda_k ~ 4 pi k / area on a surface
+        iso_L = cotangent_stiffness(V, F)
+        plan = _node_plan(thetas, etas)
+        # the isotropic spectrum is stored in float64 (the biharmonic embedding, the alignment
+        # reference): solved to the solver's own tolerance; the nodes to their storage's
+        tol = GRID_TOL[config.evecs_dtype]
+        if solver in NODE_SOLVERS:
+            # the isotropic solve is the first task of the same queue, so with workers the
+            # first nodes start beside it instead of after it; their shifts therefore come
+            # from Weyl's law (within 4 % of the solved lambda_64 on the shared meshes and a
+            # 20k torus) rather than the solved isotropic lambda_K
+            weyl_k = 4.0 * np.pi * K / area
+            tasks = chain(
+                [(iso_L, k_first, weyl, BLOCK_TOL)],
+                (
+                    (assembler.stiffness(th, et), K, estimate_lambda_k(weyl_k, et), tol)
+                    for _, th, et, src, _ in plan
+                    if src == "solve"
+                ),
+            )
+            cold_iter = _cold_solutions(tasks, mass, workers, solver)
+            iso_vals, iso_vecs, _, _ = next(cold_iter)
+        else:
+            iso_vals, iso_vecs, _ = eigs_sliced(iso_L, mass, k_first, weyl)
         timings["isotropic_s"] = time.perf_counter() - t0
         progress.update(1, total, stage="isotropic")
         check_cancel(progress)
 
-        plan = _node_plan(thetas, etas)
-        if solver in _NODE_SOLVERS:
-            cold_iter = _cold_solutions(
-                (
-                    (assembler.stiffness(th, et), estimate_lambda_k(iso_vals[K - 1], et))
-                    for _, th, et, src, _ in plan
-                    if src == "solve"
-                ),
-                mass,
-                K,
-                workers,
-                solver,
-            )
         evals = np.empty((G, K))
         solve_log: list[dict] = []
         # the aligned reference and the warm start of the next node in the chain
@@ -421,6 +457,7 @@ def compute_spectra(
         manifest = _manifest(mesh, config, n, len(F), G, timings, solve_log)
         manifest["solver"] = {
             "method": solver,
+            "tol": tol,
             "workers": workers,
             "iso_lambda_k": float(iso_vals[K - 1]),
             "nodes": solve_log,
