@@ -10,45 +10,27 @@ on disk, so later processes load it in well under a second.
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
-HAVE_NUMBA = importlib.util.find_spec("numba") is not None
+from hktex_engine.jit import HAVE_NUMBA, LOCK, SIMD_SUMS, jit
+
+__all__ = ["HAVE_NUMBA", "SIMD_SUMS", "jit"]
+
 
 #: ``HKTEX_FUSED_BLEND=0`` turns every compiled path off (the torch paths answer).
 ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
 
-_LOCK = threading.RLock()
+_LOCK = LOCK
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
     """Whether compiled paths can answer for tensors on ``device`` in ``dtype`` (CPU float32)."""
     return ENABLED and HAVE_NUMBA and device.type == "cpu" and dtype == torch.float32
-
-
-#: LLVM flags that let a float32 dot product run in SIMD lanes (re-associated sums, fused
-#: multiply-adds); none that change NaN, infinity or signed-zero handling.
-SIMD_SUMS = frozenset({"reassoc", "contract"})
-
-
-def jit(fn: Callable, inline: bool = False, fastmath: frozenset = frozenset()) -> Callable:
-    """``fn`` compiled by numba (``nogil``, cached on disk where a cache folder is writable)."""
-    import numba
-
-    flags = set(fastmath) or False
-    with _LOCK:
-        if inline:
-            return numba.njit(inline="always", fastmath=flags)(fn)
-        try:
-            return numba.njit(nogil=True, cache=True, fastmath=flags)(fn)
-        except RuntimeError:  # no writable cache location: compile in each process
-            return numba.njit(nogil=True, fastmath=flags)(fn)
 
 
 def unit(v):

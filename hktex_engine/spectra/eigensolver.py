@@ -27,6 +27,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import eigsh, splu
 
 from hktex_engine.errors import SpectraError
+from hktex_engine.spectra.triangular import FactorSolve
 
 #: Shift below the spectrum for shift-invert (meshes are normalised to a bounding box of side
 #: 2, where lambda_1 is O(1)); negative so that L - sigma M is positive definite.
@@ -196,9 +197,19 @@ def _rayleigh_ritz(
     return theta, Q @ C
 
 
+#: SuperLU's pivoting for ``L - sigma M``: the symmetric fill-reducing order kept, a row
+#: exchange only where a diagonal pivot is below a tenth of its column's largest entry.
+#: Measured (35k / 20k vertices, sigma inside the wanted range, so indefinite): factor
+#: 1.2-1.5x faster than partial pivoting, 2 % fewer non-zeros, backward error 1e-11 (against
+#: 5e-13); without any pivoting (threshold 0) the backward error grew to 1e-9.
+FACTOR_OPTIONS = {"diag_pivot_thresh": 0.1, "options": {"SymmetricMode": True}}
+
+
 def _factor(L: sp.spmatrix, mass: np.ndarray, sigma: float):
     try:
-        return splu((L - sigma * sp.diags(mass)).tocsc(), permc_spec="MMD_AT_PLUS_A")
+        return splu(
+            (L - sigma * sp.diags(mass)).tocsc(), permc_spec="MMD_AT_PLUS_A", **FACTOR_OPTIONS
+        )
     except RuntimeError as exc:  # exactly singular at this shift
         raise SpectraError(f"factorisation failed at shift {sigma}: {exc}") from exc
 
@@ -311,7 +322,9 @@ def _orthonormal_block(Z: np.ndarray, rng: np.random.Generator) -> tuple[np.ndar
             Rq[weak, :] = 0.0
             return Q, Rq @ R
         C = np.linalg.cholesky(0.5 * (G + G.T))  # G = C C^T, Z = (Z C^-T) C^T
-        Z = sla.solve_triangular(C, Z.T, lower=True).T
+        # C^-T as a small matrix, then one GEMM: a triangular solve on the transposed tall
+        # block cost 1.8 ms a call at 35k vertices, ~5 % of a node
+        Z = Z @ sla.solve_triangular(C, np.eye(C.shape[0]), lower=True).T
         R = C.T @ R
     return Z, R
 
@@ -359,11 +372,11 @@ def eigs_block(
     if full_every is None:
         full_every = FULL_REORTH_EVERY if tol >= PERIODIC_REORTH_MIN_TOL else 1
     rng = np.random.default_rng(seed)
-    lu = _factor(L, mass, sigma)
+    lu = FactorSolve(_factor(L, mass, sigma))  # SuperLU's factor, compiled solves
     sq = np.sqrt(mass)
 
     def apply_s(Y: np.ndarray) -> np.ndarray:  # M^(1/2) (L - sigma M)^-1 M^(1/2) Y
-        return sq[:, None] * lu.solve(np.ascontiguousarray(sq[:, None] * Y))
+        return sq[:, None] * lu.solve(sq[:, None] * Y)
 
     Q = np.empty((n, dmax), order="F")
     T = np.zeros((dmax, dmax))

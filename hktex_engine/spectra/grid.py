@@ -203,8 +203,9 @@ def _cold_solutions(
     """Independent solves of ``tasks`` (operator, pairs, lambda_k estimate, tolerance) in
     order; with ``workers > 1`` in a process pool.
 
-    At most ``workers + 1`` results are in flight, so memory stays bounded by a few bases
-    however large the grid. Worker processes are spawned (not forked) so no BLAS thread
+    At most ``2 * workers + 1`` results are in flight, so memory stays bounded by a few bases
+    however large the grid, and the workers keep busy while this process waits on a long
+    task (the isotropic solve, first in the queue, takes 2-3 nodes' time). Worker processes are spawned (not forked) so no BLAS thread
     pool state is inherited.
     """
     if workers <= 1:
@@ -221,12 +222,18 @@ def _cold_solutions(
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
     try:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        # and one here: this process aligns and stores while the workers solve, and
+        # OpenBLAS's spinning second thread took a core from them (alignment measured 17 ms a
+        # node alone, 98 ms beside two workers, 35k vertices)
+        with (
+            threadpool_limits(limits=1, user_api="blas"),
+            ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool,
+        ):
             pending: deque = deque()
             try:
                 for L, k, estimate, tol in tasks:
                     pending.append(pool.submit(solve_node_timed, L, mass, k, estimate, solver, tol))
-                    if len(pending) > workers:
+                    if len(pending) > 2 * workers:
                         yield pending.popleft().result()
                 while pending:
                     yield pending.popleft().result()

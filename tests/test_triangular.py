@@ -1,0 +1,53 @@
+"""The compiled solves with SuperLU's factor (spectra.triangular) against independent solves."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from hktex_engine.spectra import triangular
+from hktex_engine.spectra.eigensolver import FACTOR_OPTIONS
+from hktex_engine.spectra.triangular import FactorSolve
+
+
+def _indefinite_laplacian(n_side: int = 30, shift: float = 0.3) -> sp.csc_matrix:
+    """A grid Laplacian shifted into its spectrum (indefinite, like L - sigma M mid-range),
+    with random positive weights so nothing is symmetric by accident of the grid."""
+    rng = np.random.default_rng(0)
+    n = n_side * n_side
+    idx = np.arange(n).reshape(n_side, n_side)
+    i = np.r_[idx[:, :-1].ravel(), idx[:-1, :].ravel()]
+    j = np.r_[idx[:, 1:].ravel(), idx[1:, :].ravel()]
+    w = rng.uniform(0.5, 1.5, len(i))
+    W = sp.coo_matrix((w, (i, j)), shape=(n, n))
+    W = W + W.T
+    L = sp.diags(np.asarray(W.sum(axis=1)).ravel()) - W
+    return (L - shift * sp.eye(n)).tocsc()
+
+
+@pytest.mark.parametrize("options", [{}, FACTOR_OPTIONS], ids=["partial", "symmetric"])
+@pytest.mark.parametrize("cols", [None, 1, 8, 11])
+def test_compiled_solve_equals_superlu_and_a_dense_solve(options, cols):
+    A = _indefinite_laplacian()
+    lu = splu(A, permc_spec="MMD_AT_PLUS_A", **options)
+    rng = np.random.default_rng(1)
+    B = rng.standard_normal(A.shape[0] if cols is None else (A.shape[0], cols))
+    fs = FactorSolve(lu)
+    assert fs.compiled == triangular.HAVE_NUMBA
+    X = fs.solve(B)
+    assert X.shape == B.shape
+    np.testing.assert_allclose(X, lu.solve(B), rtol=1e-10, atol=1e-10)
+    dense = np.linalg.solve(A.toarray(), B)
+    np.testing.assert_allclose(X, dense, rtol=1e-8, atol=1e-8 * np.abs(dense).max())
+
+
+def test_without_numba_superlu_solves(monkeypatch):
+    monkeypatch.setattr(triangular, "HAVE_NUMBA", False)
+    A = _indefinite_laplacian(10)
+    lu = splu(A)
+    B = np.random.default_rng(2).standard_normal((A.shape[0], 3))
+    fs = FactorSolve(lu)
+    assert not fs.compiled
+    np.testing.assert_array_equal(fs.solve(B), lu.solve(B))
