@@ -95,6 +95,8 @@ def naive_grid(spectra_dir: Path) -> dict:
         "stored_subspace_max_error": float(np.max(sub_err)),
         "manifest_timings": sp.manifest.get("timings"),
         "solver_methods": sorted({e["method"] for e in sp.manifest["solver"]["nodes"]}),
+        "workers_used": sp.manifest["solver"]["workers"],
+        "solver_tol": sp.manifest["solver"].get("tol"),
     }
 
 
@@ -115,13 +117,14 @@ def write_md(path: Path, r: dict) -> None:
         "| mesh | n | nodes | K | workers | ours s | naive s | speed-up | eigenvalue err "
         "| subspace err | solver |",
         "|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---|",
-        f"| {r['mesh']} | {r['n']} | {r['nodes']} | {r['k']} | {r['workers']} "
+        f"| {r['mesh']} | {r['n']} | {r['nodes']} | {r['k']} "
+        f"| {r['workers']} ({r.get('workers_used', '?')}) "
         f"| {r['ours_s']:.1f} | {r['naive_s']:.1f} | {r['speedup']:.2f}x "
         f"| {r['stored_eval_max_rel_error']:.1e} | {r['stored_subspace_max_error']:.1e} "
         f"| {', '.join(r['solver_methods'])} |",
         "",
     ]
-    path.write_text("\n".join(lines))
+    path.write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
