@@ -292,3 +292,27 @@ def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
     np.testing.assert_allclose(cached, uncached, rtol=0, atol=1e-6)
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
     assert grads[0].abs().sum() > 0
+
+
+def test_distinct_rows_equals_a_row_wise_unique_even_under_hash_collisions(monkeypatch):
+    """The point cache's keying (a verified 64-bit hash) gives exactly the equivalence classes
+    of ``torch.unique(dim=0)``; with a hash that collides on every row it still does (the
+    verification sends it to the row-wise path)."""
+    import hktex_engine.render.mitsuba as rm
+
+    rng = np.random.default_rng(0)
+    base = torch.as_tensor(rng.integers(-(2**31), 2**31, size=(500, 3)), dtype=torch.long)
+    keys = base[torch.as_tensor(rng.integers(0, 500, size=3000))]  # many repeats
+    _, ref = torch.unique(keys, dim=0, return_inverse=True)
+
+    def same_classes(inv: torch.Tensor) -> bool:
+        pairs = torch.stack([inv, ref], 1)
+        return (
+            torch.unique(pairs, dim=0).shape[0] == torch.unique(ref).shape[0] == int(inv.max() + 1)
+        )
+
+    inv, count = rm._distinct_rows(keys)
+    assert count == int(ref.max()) + 1 and same_classes(inv)
+    monkeypatch.setattr(rm, "_HASH_MULT", (0, 0, 0))  # every row hashes to 0
+    inv, count = rm._distinct_rows(keys)
+    assert count == int(ref.max()) + 1 and same_classes(inv)
