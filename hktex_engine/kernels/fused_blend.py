@@ -47,14 +47,21 @@ def available(device: torch.device, dtype: torch.dtype) -> bool:
     return ENABLED and compiled.available(device, dtype)
 
 
+#: Columns of the per-kernel attribute rows :func:`_blend_points` reads (one 32-byte row a
+#: kernel, so a candidate's five attributes and colour arrive in one cache line: measured
+#: 3.83 -> 3.30 us a point on a render's points, bit-identical, against six separate arrays).
+NORM, THR, SHARP, LOW, HIGH, RED = range(6)
+ATTR_WIDTH = 8
+
+
 def _blend_points(
-    rows, bary, kid_t, h_t, d2_t, edge2, count, norm, thr, sharp, low, high,
-    colors, base, scale, k_s, k_c, out, out_kid, out_rho,
+    rows, bary, kid_t, h_t, d2_t, edge2, count, attrs, base, scale, k_s, k_c,
+    out, out_kid, out_rho,
 ):  # fmt: skip
     """Colours ``out[p]`` for points ``p`` at face-table rows ``rows`` (see :func:`blend`),
     and the blended kernels ``out_kid[p]`` with their ``out_rho[p]`` in rule order."""
     width = kid_t.shape[1]
-    n_kernels = norm.shape[0]
+    n_kernels = attrs.shape[0]
     d2 = np.empty(width, np.float64)
     part = np.empty(width, np.float64)
     pos = np.empty(width, np.int64)
@@ -101,9 +108,9 @@ def _blend_points(
             k = kid_t[r, j]
             h = h_t[r, j, 0] * c0 + h_t[r, j, 1] * c1 + h_t[r, j, 2] * c2
             w = math.exp(np.float32(-d2[j] / scale))  # float32 exp: within an ulp of the cast
-            x = h * w / norm[k]
-            s = one / (one + np.float32(math.exp(-(sharp[k] * (x - thr[k])))))
-            v = (s - low[k]) / (high[k] - low[k])
+            x = h * w / attrs[k, NORM]
+            s = one / (one + np.float32(math.exp(-(attrs[k, SHARP] * (x - attrs[k, THR])))))
+            v = (s - attrs[k, LOW]) / (attrs[k, HIGH] - attrs[k, LOW])
             rho[i] = _unit(v)
             cd2[i] = d2[j]
         # K_c choice: largest rho, then smallest distance, then kernel id (row order)
@@ -120,9 +127,9 @@ def _blend_points(
             k = kid_t[r, pos[i]]
             out_kid[p, t] = k
             out_rho[p, t] = rho[i]
-            acc0 += rho[i] * colors[k, 0]
-            acc1 += rho[i] * colors[k, 1]
-            acc2 += rho[i] * colors[k, 2]
+            acc0 += rho[i] * attrs[k, RED]
+            acc1 += rho[i] * attrs[k, RED + 1]
+            acc2 += rho[i] * attrs[k, RED + 2]
             total += rho[i]
         denom = total if total > one else one
         out[p, 0] = _unit(base[0] + acc0 / denom)
@@ -165,8 +172,11 @@ def blend(
     # tables hold no graph (views, not copies: they may be the whole mesh's); the kernels'
     # attributes may be Parameters (detached: a view, nothing copied)
     tables = [compiled.array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
-    attrs = [compiled.array(t) for t in (norm, threshold, sharpness, low, high, colors)]
-    args = [*tables, *attrs, compiled.array(base_color)]
+    per_kernel = [norm, threshold, sharpness, low, high]
+    attrs = torch.zeros((norm.shape[0], ATTR_WIDTH), dtype=torch.float32)
+    attrs[:, :RED] = torch.stack([t.detach().to(torch.float32) for t in per_kernel], dim=1)
+    attrs[:, RED : RED + 3] = colors.detach()
+    args = [*tables, attrs.numpy(), compiled.array(base_color)]
     b = compiled.array(bary.to(torch.float32))
     scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
     n = rows.shape[0]
