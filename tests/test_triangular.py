@@ -34,7 +34,7 @@ def test_compiled_solve_equals_superlu_and_a_dense_solve(options, cols):
     lu = splu(A, permc_spec="MMD_AT_PLUS_A", **options)
     rng = np.random.default_rng(1)
     B = rng.standard_normal(A.shape[0] if cols is None else (A.shape[0], cols))
-    fs = FactorSolve(lu)
+    fs = FactorSolve(lu, min_n=0)
     assert fs.compiled == triangular.HAVE_NUMBA
     X = fs.solve(B)
     assert X.shape == B.shape
@@ -48,6 +48,11 @@ def test_without_numba_superlu_solves(monkeypatch):
     A = _indefinite_laplacian(10)
     lu = splu(A)
     B = np.random.default_rng(2).standard_normal((A.shape[0], 3))
-    fs = FactorSolve(lu)
+    fs = FactorSolve(lu, min_n=0)
     assert not fs.compiled
     np.testing.assert_array_equal(fs.solve(B), lu.solve(B))
+
+
+def test_small_factors_are_left_to_superlu():
+    lu = splu(_indefinite_laplacian(10))
+    assert not FactorSolve(lu).compiled  # 100 unknowns: below COMPILED_MIN_N

@@ -72,12 +72,17 @@ def _kernels() -> tuple:
     return _COMPILED
 
 
+#: Below this many unknowns SuperLU solves: its solves are cheap there, and loading the
+#: compiled loops costs each spectra worker ~0.6 s (numba's import and cache).
+COMPILED_MIN_N = 10_000
+
+
 class FactorSolve:
     """``A^-1 B`` for ``Pr A Pc = L U`` as SciPy's ``splu`` factors it (``B``: (n,) or (n, r))."""
 
-    def __init__(self, lu) -> None:
+    def __init__(self, lu, min_n: int | None = None) -> None:
         self._lu = lu
-        self.compiled = HAVE_NUMBA
+        self.compiled = HAVE_NUMBA and lu.shape[0] >= (COMPILED_MIN_N if min_n is None else min_n)
         if not self.compiled:
             return
         self._perm_r = lu.perm_r
