@@ -25,8 +25,6 @@ __all__ = ["HAVE_NUMBA", "SIMD_SUMS", "jit"]
 #: ``HKTEX_FUSED_BLEND=0`` turns every compiled path off (the torch paths answer).
 ENABLED = os.environ.get("HKTEX_FUSED_BLEND", "1") != "0"
 
-_LOCK = LOCK
-
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
     """Whether compiled paths can answer for tensors on ``device`` in ``dtype`` (CPU float32)."""
@@ -122,7 +120,7 @@ def helpers():
     compiled against the compiled one. Returns ``(unit, select, kth_smallest,
     choose_by_rule)``."""
     global _HELPERS, unit, select, kth_smallest, choose_by_rule
-    with _LOCK:
+    with LOCK:
         if _HELPERS is None:
             unit = jit(unit, inline=True)
             choose_by_rule = jit(choose_by_rule, inline=True)

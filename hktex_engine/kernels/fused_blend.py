@@ -170,7 +170,7 @@ def blend(
     low = torch.sigmoid(-sharpness * threshold)
     high = torch.sigmoid(sharpness * (1 - threshold))
     # tables hold no graph (views, not copies: they may be the whole mesh's); the kernels'
-    # attributes may be Parameters (detached: a view, nothing copied)
+    # attributes (possibly Parameters, detached) are copied into one row a kernel
     tables = [compiled.array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
     per_kernel = [norm, threshold, sharpness, low, high]
     attrs = torch.zeros((norm.shape[0], ATTR_WIDTH), dtype=torch.float32)

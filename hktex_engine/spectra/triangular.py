@@ -10,7 +10,8 @@ once per block. Same factor, same permutations, so the same solution up to the o
 floating-point sums (measured ~1e-11 relative to SuperLU's). No library offers a
 multi-right-hand-side triangular solve over a CSR factor without Python per row
 (``scipy.sparse.linalg.spsolve_triangular`` solves one factor column pass per call).
-Falls back to ``SuperLU.solve`` without numba.
+SuperLU still solves without numba, and below :data:`COMPILED_MIN_N` unknowns, where its
+solves are cheap and loading the compiled loops would cost a worker more than they save.
 """
 
 from __future__ import annotations
