@@ -84,7 +84,7 @@ def test_kth_smallest_against_a_sort():
     and reversed rows), large k (the full quickselect) and heavy ties; the input unchanged."""
     from hktex_engine.kernels import compiled
 
-    _, _, kth_smallest, _ = compiled.helpers()
+    _, _, kth_smallest, _, _ = compiled.helpers()
     rng = np.random.default_rng(1)
     for trial in range(400):
         n = int(rng.integers(1, 700))
@@ -97,6 +97,41 @@ def test_kth_smallest_against_a_sort():
         elif trial % 5 == 2:
             a = np.sort(a)[::-1].copy()
         before = a.copy()
-        buf = np.empty(n + 2)
+        buf = np.empty(2 * n)
         assert kth_smallest(a, n, k, buf) == np.sort(a)[k]
         np.testing.assert_array_equal(a, before)
+
+
+def test_unordered_blend_gives_the_ordered_colours(spectra3, monkeypatch):
+    """``ordered=False`` (queries and renders: colours only) picks the same kernels by a
+    selection and sums them in candidate order: colours within float32 round-off."""
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "always")
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float32)
+    model = make_model(field, make_params(spectra3, 300, seed=22), CONFIG)
+    rng = np.random.default_rng(6)
+    n = 3000
+    f = torch.as_tensor(rng.integers(0, spectra3.faces.shape[0], n))
+    b = torch.as_tensor(rng.dirichlet(np.ones(3), n), dtype=torch.float32)
+    with torch.no_grad():
+        ordered = model.albedo(f, b, return_aux=True)[0]
+        plain = model.albedo(f, b)
+    np.testing.assert_allclose(plain.numpy(), ordered.numpy(), rtol=0, atol=2e-6)
+
+
+def test_pick_by_rule_picks_the_set_choose_by_rule_ranks():
+    """The linear K_c selection (compiled.pick_by_rule) against the rule-ordered insertion
+    (choose_by_rule) on rows full of ties in rho and in d2: the same positions, as a set."""
+    from hktex_engine.kernels import compiled
+
+    _, _, _, choose, pick = compiled.helpers()
+    rng = np.random.default_rng(2)
+    for trial in range(500):
+        n = int(rng.integers(1, 80))
+        k = int(rng.integers(1, 40))
+        rho = (rng.integers(0, 4 if trial % 2 else 50, n) / 3.0).astype(np.float32)
+        d2 = rng.integers(0, 3 if trial % 3 else 100, n).astype(np.float64)
+        top_c = np.empty(max(k, n), np.int64)
+        top_p = np.empty(max(k, n), np.int64)
+        q = choose(rho, d2, n, k, top_c)
+        assert pick(rho, d2, n, k, top_p, np.empty(2 * n)) == q == min(k, n)
+        assert sorted(top_p[:q]) == sorted(top_c[:q])

@@ -287,11 +287,82 @@ def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
         (img * torch.tensor([0.5, 1.0, 2.0])).sum().backward()
         grads.append(colors.grad.clone())
     counts.clear()
+    monkeypatch.setattr(rm, "_BounceMemo", lambda: None)  # every request evaluated
     uncached = scene.render(cam, seed=3)
     assert sum(counts) > evaluated
     np.testing.assert_allclose(cached, uncached, rtol=0, atol=1e-6)
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
     assert grads[0].abs().sum() > 0
+
+
+def test_bounce_memo_renders_equal_the_torch_glue_and_evaluates_less(R, monkeypatch):
+    """A plain render on the CPU answers through the bounce memo: the image equals the one the
+    torch glue gives when every request is evaluated (to the sRGB curve's float32 round-off),
+    while the albedo runs on fewer points (each bounce's repeated hits answered once)."""
+    from hktex_engine.evaluation.synthetic import icosphere
+    from hktex_engine.render import mitsuba as rm
+
+    V, F = icosphere(2)
+    counts = []
+    base = _smooth_albedo(V, F)
+
+    def fn(f, b):
+        counts.append(len(f))
+        return base(f, b)
+
+    scene = R.RenderScene(V, F, R.RenderSettings(width=24, height=24, spp=4), albedo_fn=fn)
+    cam = R.orbit_camera(V, 20, 10)
+    memo = scene.render(cam, seed=3)
+    assert scene.last_memo.asked > scene.last_memo.evaluated == sum(counts) > 0
+    evaluated = sum(counts)
+    counts.clear()
+    monkeypatch.setattr(rm, "_BounceMemo", lambda: None)  # the torch glue, no reuse
+    every = scene.render(cam, seed=3)
+    assert sum(counts) > evaluated
+    np.testing.assert_allclose(memo, every, rtol=0, atol=1e-6)
+    assert memo.max() > 0.1
+
+
+def test_bounce_memo_reuses_only_equal_hits_in_order():
+    """The memo reuses an answer exactly where the hit (face and barycentric bits) repeats in
+    order, evaluates everything else, and its answers equal direct evaluation."""
+    from hktex_engine.render import mitsuba as rm
+
+    asked = []
+
+    def fn(f, b):
+        asked.append(f.clone())
+        return torch.stack([f.float() / 10.0, b[:, 1], b[:, 2]], dim=1).clamp(0, 1)
+
+    def lanes(face, u, v, valid):
+        return (
+            torch.tensor(face, dtype=torch.int32),
+            torch.tensor(u, dtype=torch.float32),
+            torch.tensor(v, dtype=torch.float32),
+            torch.tensor(valid),
+        )
+
+    def direct(face, u, v, valid):
+        f = torch.tensor(face)
+        b = torch.tensor([[1.0 - a - c, a, c] for a, c in zip(u, v, strict=True)])
+        out = rm.srgb_to_linear(fn(f, b).numpy()) * np.asarray(valid, dtype=np.float32)[:, None]
+        asked.clear()
+        return out
+
+    memo = rm._BounceMemo()
+    first = ([1, 2, 3, 4], [0.1, 0.2, 0.3, 0.4], [0.1, 0.1, 0.1, 0.1], [True, False, True, True])
+    got = memo.answer(fn, *lanes(*first)).numpy()
+    assert [a.tolist() for a in asked] == [[1, 3, 4]]
+    asked.clear()
+    np.testing.assert_allclose(got, direct(*first), atol=1e-7)
+    # hits 1, 3 and 4 again in order with new ones between; hit 4's v differs in its last bit
+    v4 = float(np.nextafter(np.float32(0.1), np.float32(1)))
+    second = ([9, 1, 3, 8, 4], [0.5, 0.1, 0.3, 0.2, 0.4], [0.2, 0.1, 0.1, 0.3, v4], [True] * 5)
+    got = memo.answer(fn, *lanes(*second)).numpy()
+    assert [a.tolist() for a in asked] == [[9, 8, 4]]
+    asked.clear()
+    np.testing.assert_allclose(got, direct(*second), atol=1e-7)
+    assert (memo.asked, memo.evaluated) == (8, 6)
 
 
 def test_distinct_rows_equals_a_row_wise_unique_even_under_hash_collisions(monkeypatch):

@@ -40,6 +40,7 @@ _unit = compiled.unit
 _select = compiled.select
 _kth = compiled.kth_smallest
 _choose = compiled.choose_by_rule
+_pick = compiled.pick_by_rule
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
@@ -56,18 +57,20 @@ ATTR_WIDTH = 8
 
 def _blend_points(
     rows, bary, kid_t, h_t, d2_t, edge2, count, attrs, base, scale, k_s, k_c,
-    out, out_kid, out_rho,
+    out, out_kid, out_rho, ordered,
 ):  # fmt: skip
     """Colours ``out[p]`` for points ``p`` at face-table rows ``rows`` (see :func:`blend`),
-    and the blended kernels ``out_kid[p]`` with their ``out_rho[p]`` in rule order."""
+    and, when ``ordered``, the blended kernels ``out_kid[p]`` with their ``out_rho[p]`` in
+    rule order (else those two are not touched: the same kernels are chosen by a selection
+    and summed in candidate order)."""
     width = kid_t.shape[1]
     n_kernels = attrs.shape[0]
     d2 = np.empty(width, np.float64)
-    part = np.empty(width, np.float64)
+    part = np.empty(2 * width, np.float64)
     pos = np.empty(width, np.int64)
     cd2 = np.empty(width, np.float64)
     rho = np.empty(width, np.float32)
-    top = np.empty(k_c, np.int64)
+    top = np.empty(max(k_c, width), np.int64)
     one = np.float32(1.0)
     zero = np.float32(0.0)
     for p in range(rows.shape[0]):
@@ -88,17 +91,15 @@ def _blend_points(
             kth = _kth(d2, n, m - 1, part)
             less = 0
             for j in range(n):
-                if d2[j] < kth:
-                    less += 1
+                less += d2[j] < kth
             ties = m - less
             taken = 0
-            for j in range(n):
+            for j in range(n):  # without data-dependent branches (they mispredict half the time)
                 v = d2[j]
-                if v < kth or (v == kth and ties > 0):
-                    if v == kth:
-                        ties -= 1
-                    pos[taken] = j
-                    taken += 1
+                tie = (v == kth) & (ties > 0)
+                pos[taken] = j
+                taken += (v < kth) | tie
+                ties -= tie
         else:
             for j in range(n):
                 pos[j] = j
@@ -114,19 +115,24 @@ def _blend_points(
             rho[i] = _unit(v)
             cd2[i] = d2[j]
         # K_c choice: largest rho, then smallest distance, then kernel id (row order)
-        q = _choose(rho, cd2, m, k_c, top)
+        if ordered:
+            q = _choose(rho, cd2, m, k_c, top)
+        else:
+            q = _pick(rho, cd2, m, k_c, top, part)
         acc0 = zero
         acc1 = zero
         acc2 = zero
         total = zero
-        for t in range(q, k_c):  # fewer candidates than K_c: padding, as the torch path
-            out_kid[p, t] = n_kernels
-            out_rho[p, t] = zero
+        if ordered:
+            for t in range(q, k_c):  # fewer candidates than K_c: padding, as the torch path
+                out_kid[p, t] = n_kernels
+                out_rho[p, t] = zero
         for t in range(q):
             i = top[t]
             k = kid_t[r, pos[i]]
-            out_kid[p, t] = k
-            out_rho[p, t] = rho[i]
+            if ordered:
+                out_kid[p, t] = k
+                out_rho[p, t] = rho[i]
             acc0 += rho[i] * attrs[k, RED]
             acc1 += rho[i] * attrs[k, RED + 1]
             acc2 += rho[i] * attrs[k, RED + 2]
@@ -142,9 +148,9 @@ _COMPILED = None
 
 def _kernel():
     """The compiled ``_blend_points`` (built on first use)."""
-    global _COMPILED, _select, _unit, _choose, _kth
+    global _COMPILED, _select, _unit, _choose, _kth, _pick
     if _COMPILED is None:
-        _unit, _select, _kth, _choose = compiled.helpers()
+        _unit, _select, _kth, _choose, _pick = compiled.helpers()
         _COMPILED = compiled.jit(_blend_points)
     return _COMPILED
 
@@ -161,10 +167,14 @@ def blend(
     sigma_b: float,
     k_s: int,
     k_c: int,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    ordered: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """``(albedo (P, 3), kernel ids (P, K_c), rho (P, K_c))`` at points ``(face_ids, bary)``
     from face tables ``ft`` (``kernels.tables.FaceTables`` covering their faces), the blended
-    kernels in rule order; in threads over chunks of points."""
+    kernels in rule order; in threads over chunks of points. ``ordered=False`` returns the
+    albedo alone (ids and rho None): the same kernels, chosen by a linear selection and
+    summed in candidate order (colours within float32 round-off of the ordered sum), for
+    queries and renders that need no statistics."""
     rows = ft.rows[face_ids].numpy()
     # per-kernel ends of the soft step, by soft_step's own torch expressions (same bits)
     low = torch.sigmoid(-sharpness * threshold)
@@ -182,14 +192,17 @@ def blend(
     n = rows.shape[0]
     k_c = min(k_c, k_s)
     out = np.empty((n, 3), dtype=np.float32)
-    out_kid = np.empty((n, k_c), dtype=np.int64)
-    out_rho = np.empty((n, k_c), dtype=np.float32)
+    width = k_c if ordered else 0
+    out_kid = np.empty((n, width), dtype=np.int64)
+    out_rho = np.empty((n, width), dtype=np.float32)
     kernel = _kernel()
 
     def run(sl: slice) -> None:
-        kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl])
+        kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl], ordered)
 
     compiled.run_threaded(run, n, THREAD_MIN_POINTS)
+    if not ordered:
+        return torch.from_numpy(out), None, None
     return torch.from_numpy(out), torch.from_numpy(out_kid), torch.from_numpy(out_rho)
 
 

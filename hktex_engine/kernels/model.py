@@ -530,7 +530,7 @@ class HeatKernelModel(nn.Module):
             args = (norm, self.threshold, self.sharpness, self.colors, self.base_color)
             cfg = self.config
             out, kid, rho = fused_blend.blend(
-                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend
+                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=return_aux
             )
             return (out, {"indices": kid, "rho": rho}) if return_aux else out
         row, kid, d2 = point_distances(ft, face_ids, bary)

@@ -139,6 +139,8 @@ def _texture_class() -> type:
         def __init__(self, props: Any) -> None:
             super().__init__(props)
             self.albedo_fn: AlbedoFn | None = None
+            #: set by a plain render on the CPU: repeated hits answered once (:class:`_BounceMemo`)
+            self.memo: _BounceMemo | None = None
             self.anchor = mi.Float(0.0)
 
         def eval(self, si: Any, active: Any = True) -> Any:
@@ -154,6 +156,10 @@ def _texture_class() -> type:
                 valid: torch.Tensor,
                 anchor: torch.Tensor,
             ):
+                memo = self.memo
+                if memo is not None and face.device.type == "cpu":
+                    out = memo.answer(fn, face, b1, b2, valid)
+                    return out[:, 0].contiguous(), out[:, 1].contiguous(), out[:, 2].contiguous()
                 # prb replays the plugin inside a no-grad backward; the graph must exist anyway
                 with torch.enable_grad():
                     # Mitsuba calls with every lane of the wavefront, most of them dead after
@@ -437,6 +443,8 @@ class RenderScene:
         self.uv_mode = texture is not None
         #: the last plain render's point cache (``asked`` / ``evaluated`` point counts)
         self.last_cache: _PointCache | None = None
+        #: the last one-pass plain render's memo (``asked`` / ``evaluated`` point counts)
+        self.last_memo: _BounceMemo | None = None
         if self.uv_mode:
             if corner_uvs is None:
                 raise ValueError("a UV-textured scene needs corner_uvs")
@@ -581,10 +589,12 @@ class RenderScene:
                     plugin.albedo_fn = self.last_cache
                 elif inner is not None:
                     plugin.albedo_fn = _without_grad(inner)
+                    plugin.memo = self.last_memo = _BounceMemo()
                 img = mi.render(self.scene, sensor=sensor, spp=spp, seed=seed)
         finally:
             if inner is not None:
                 plugin.albedo_fn = inner
+                plugin.memo = None
         return np.array(img, dtype=np.float32)
 
     def render_torch(
@@ -715,6 +725,97 @@ class _HitRecorder:
         first = torch.full((count,), len(f), dtype=torch.long, device=f.device)
         first.scatter_reduce_(0, inv, torch.arange(len(f), device=f.device), "amin")
         return f[first], b[first]
+
+
+def _match_in_order(prev, cur, pos):  # pragma: no cover - compiled by numba
+    """``pos[i]``: the row of ``prev`` equal to ``cur[i]`` when ``prev`` is walked in order
+    alongside ``cur`` (a greedy subsequence match), else -1. Rows are (face, u bits, v bits)."""
+    j = 0
+    m = prev.shape[0]
+    for i in range(cur.shape[0]):
+        if (
+            j < m
+            and cur[i, 0] == prev[j, 0]
+            and cur[i, 1] == prev[j, 1]
+            and cur[i, 2] == prev[j, 2]
+        ):
+            pos[i] = j
+            j += 1
+        else:
+            pos[i] = -1
+
+
+_MATCH: list = []
+
+
+def _matcher() -> Callable | None:
+    """The compiled :func:`_match_in_order` (None without numba: nothing is reused)."""
+    from hktex_engine import jit
+
+    if not jit.HAVE_NUMBA:
+        return None
+    with jit.LOCK:
+        if not _MATCH:
+            _MATCH.append(jit.jit(_match_in_order))
+    return _MATCH[0]
+
+
+class _BounceMemo:
+    """The plain render's texture answers on the CPU; a bounce's repeated hits answered once.
+
+    ``prb`` asks the texture twice at each bounce: for the emitter sample's BSDF value (the
+    lanes whose light sample is valid) and to sample the BSDF (every live lane). Dr.Jit hands
+    each call its active lanes compacted in lane order, so the first call's hits come again,
+    in the same order, inside the second (measured on spot at 128^2, 8 spp: calls of 13,169,
+    29,282, 604 and 1,600 hits; all 13,169 and 604 found again). The memo keeps the last
+    call's hits (face and barycentric bits) and answers; the next call walks both in order
+    and reuses an answer only where the bits are equal, so a reused value is the very value
+    the albedo function gave for the same input, and the rest is evaluated. A linear walk
+    instead of hashing (the point cache's keying cost as much as it saved). The glue runs in
+    numpy rather than torch: small torch ops inside Mitsuba's callback were measured up to
+    ~50x slower than alone (17 ms against 0.3 ms for the sRGB curve on 11,000 points), their
+    threads contending with Dr.Jit's.
+    """
+
+    def __init__(self) -> None:
+        self.keys = np.zeros((0, 3), dtype=np.int32)  # the last call's hits, in order
+        self.values = np.zeros((0, 3), dtype=np.float32)  # their linear answers
+        self.match = _matcher()
+        self.asked = 0
+        self.evaluated = 0
+
+    def answer(
+        self,
+        fn: AlbedoFn,
+        face: torch.Tensor,
+        b1: torch.Tensor,
+        b2: torch.Tensor,
+        valid: torch.Tensor,
+    ) -> torch.Tensor:
+        """Linear albedo (n, 3) float32 for every lane (zero where not ``valid``)."""
+        live = np.flatnonzero(valid.detach().numpy())
+        u = b1.detach().numpy().astype(np.float32, copy=False)[live]
+        v = b2.detach().numpy().astype(np.float32, copy=False)[live]
+        f = face.detach().numpy()[live].astype(np.int32)
+        keys = np.stack([f, u.view(np.int32), v.view(np.int32)], axis=1)
+        values = np.empty((live.size, 3), dtype=np.float32)
+        pos = np.full(live.size, -1, dtype=np.int64)
+        if self.match is not None and live.size and self.keys.shape[0]:
+            self.match(self.keys, keys, pos)
+        hit = pos >= 0
+        values[hit] = self.values[pos[hit]]
+        todo = np.flatnonzero(~hit)
+        self.asked += int(live.size)
+        self.evaluated += int(todo.size)
+        if todo.size:
+            us, vs = u[todo], v[todo]
+            bary = torch.from_numpy(np.stack([np.float32(1.0) - us - vs, us, vs], axis=1))
+            srgb = fn(torch.from_numpy(f[todo].astype(np.int64)), bary)
+            values[todo] = srgb_to_linear(srgb.detach().cpu().numpy())
+        self.keys, self.values = keys, values
+        out = np.zeros((face.shape[0], 3), dtype=np.float32)
+        out[live] = values
+        return torch.from_numpy(out)
 
 
 class _PointCache:
