@@ -228,8 +228,9 @@ def run_threaded(run: Callable[[slice], None], n: int, min_points: int) -> None:
         run(slice(0, n))
         return
     bounds = np.linspace(0, n, threads + 1).astype(int)
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(run, [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]))
+    list(
+        _pool(threads).map(run, [slice(a, z) for a, z in zip(bounds[:-1], bounds[1:], strict=True)])
+    )
 
 
 def run_each(run: Callable[[int], None], threads: int) -> None:
@@ -237,5 +238,22 @@ def run_each(run: Callable[[int], None], threads: int) -> None:
     if threads == 1:
         run(0)
         return
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(run, range(threads)))
+    list(_pool(threads).map(run, range(threads)))
+
+
+_POOL: list[tuple[int, ThreadPoolExecutor]] = []  # (threads, pool), at most one
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    """One process-wide pool for the compiled loops, grown when more threads are asked for.
+
+    Why kept: a render asks for the albedo four times and a fit every step; starting fresh
+    threads each call cost ~0.3-1 ms under load. Calls from several threads share it (their
+    chunks queue), which also keeps concurrent callers from oversubscribing the cores."""
+    with LOCK:
+        if not _POOL or _POOL[0][0] < threads:
+            old = _POOL[:]
+            _POOL[:] = [(threads, ThreadPoolExecutor(threads, thread_name_prefix="hktex-compiled"))]
+            for _, pool in old:
+                pool.shutdown(wait=False)
+        return _POOL[0][1]

@@ -175,7 +175,8 @@ def blend(
     albedo alone (ids and rho None): the same kernels, chosen by a linear selection and
     summed in candidate order (colours within float32 round-off of the ordered sum), for
     queries and renders that need no statistics."""
-    rows = ft.rows[face_ids].numpy()
+    # gathers and casts in numpy: torch's parallel kernels contend with a renderer's threads
+    rows = compiled.array(ft.rows)[face_ids.numpy()]
     # per-kernel ends of the soft step, by soft_step's own torch expressions (same bits)
     low = torch.sigmoid(-sharpness * threshold)
     high = torch.sigmoid(sharpness * (1 - threshold))
@@ -187,7 +188,7 @@ def blend(
     attrs[:, :RED] = torch.stack([t.detach().to(torch.float32) for t in per_kernel], dim=1)
     attrs[:, RED : RED + 3] = colors.detach()
     args = [*tables, attrs.numpy(), compiled.array(base_color)]
-    b = compiled.array(bary.to(torch.float32))
+    b = np.ascontiguousarray(compiled.array(bary), dtype=np.float32)
     scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
     n = rows.shape[0]
     k_c = min(k_c, k_s)
