@@ -99,6 +99,8 @@ def test_kth_smallest_against_a_sort():
         before = a.copy()
         buf = np.empty(2 * n)
         assert kth_smallest(a, n, k, buf) == np.sort(a)[k]
+        value, below = compiled.kth_and_below(a, n, k, buf)
+        assert (value, below) == (np.sort(a)[k], int((a < np.sort(a)[k]).sum()))
         np.testing.assert_array_equal(a, before)
 
 
@@ -133,5 +135,5 @@ def test_pick_by_rule_picks_the_set_choose_by_rule_ranks():
         top_c = np.empty(max(k, n), np.int64)
         top_p = np.empty(max(k, n), np.int64)
         q = choose(rho, d2, n, k, top_c)
-        assert pick(rho, d2, n, k, top_p, np.empty(2 * n)) == q == min(k, n)
+        assert pick(rho, d2, n, k, top_p, np.empty(3 * n)) == q == min(k, n)
         assert sorted(top_p[:q]) == sorted(top_c[:q])

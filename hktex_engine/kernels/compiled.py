@@ -83,25 +83,29 @@ def middle_of_three(x, y, z):
     return max(min(x, y), min(max(x, y), z))
 
 
-def kth_smallest(a, n, k, buf):
-    """The ``k``-th smallest (0-based) of ``a[:n]``, ``a`` unchanged (``buf``: scratch of
-    ``2 n``). A quickselect whose partition has no data-dependent branch (:func:`split`),
-    ping-ponging between the two halves of ``buf``; entries equal to the pivot leave each
-    round at once. Why not Hoare's in-place partition: on a blend's ~94 candidate distances
-    its mispredicted branches cost ~2 us a point, half the blend."""
+def kth_and_below(a, n, k, buf):
+    """``(v, below)``: the ``k``-th smallest (0-based) ``v`` of ``a[:n]`` and how many entries
+    are smaller than it, ``a`` unchanged (``buf``: scratch of ``2 n``). A quickselect whose
+    partition has no data-dependent branch (:func:`split`), ping-ponging between the two
+    halves of ``buf``; entries equal to the pivot leave each round at once, and the entries
+    left behind below the answer are counted on the way (the caller's cut needs that count).
+    Why not Hoare's in-place partition: on a blend's ~94 candidate distances its
+    mispredicted branches cost ~2 us a point, half the blend."""
     pivot = middle_of_three(a[0], a[n >> 1], a[n - 1])
     below, above = split(a, 0, n, pivot, buf, 0)
     start = 0
     cnt = n
+    passed = 0  # entries known to lie below the answer, outside the current range
     while True:
         if k < below:
             cnt = below
         elif k >= cnt - above:
             k -= cnt - above
+            passed += cnt - above
             start += cnt - above
             cnt = above
         else:
-            return pivot
+            return pivot, passed + below
         if cnt <= 8:
             for i in range(start + 1, start + cnt):  # insertion sort of the few left
                 v = buf[i]
@@ -110,11 +114,20 @@ def kth_smallest(a, n, k, buf):
                     buf[j + 1] = buf[j]
                     j -= 1
                 buf[j + 1] = v
-            return buf[start + k]
+            v = buf[start + k]
+            first = k
+            while first > 0 and buf[start + first - 1] == v:
+                first -= 1
+            return v, passed + first
         pivot = middle_of_three(buf[start], buf[start + (cnt >> 1)], buf[start + cnt - 1])
         dst = n if start < n else 0
         below, above = split(buf, start, cnt, pivot, buf, dst)
         start = dst
+
+
+def kth_smallest(a, n, k, buf):
+    """The ``k``-th smallest (0-based) of ``a[:n]``, ``a`` unchanged (:func:`kth_and_below`)."""
+    return kth_and_below(a, n, k, buf)[0]
 
 
 def choose_by_rule(rho, d2, n, k, top):
@@ -147,26 +160,25 @@ def choose_by_rule(rho, d2, n, k, top):
 def pick_by_rule(rho, d2, n, k, top, buf):
     """Positions ``top[:q]`` (``q = min(k, n)``) of the same ``k`` best of ``rho[:n]`` as
     :func:`choose_by_rule` picks, in position order instead of rule order, for callers that
-    only sum them: a quickselect finds the ``k``-th largest ``rho`` (``buf``: float64 scratch
-    of ``n``), every entry above it is in, and the entries equal to it fill the rest by
-    smallest ``d2``, then position (the tie rule; settled by insertion, as ties at the cut are
-    few). Linear in ``n`` where the sorted buffer moves up to ``k`` entries per insertion.
-    Returns ``q``."""
+    only sum them: a branch-free quickselect (:func:`kth_and_below` on ``-rho`` in
+    ``buf[2n:3n]``, ``buf``: float64 scratch of ``3 n``) finds the ``k``-th largest ``rho``,
+    every entry above it is in, and the entries equal to it fill the rest by smallest ``d2``,
+    then position (the tie rule; settled by insertion, as ties at the cut are few). Linear in
+    ``n`` where the sorted buffer moves up to ``k`` entries per insertion. Returns ``q``."""
     if n <= k:
         for i in range(n):
             top[i] = i
         return n
     for i in range(n):
-        buf[i] = -rho[i]
-    cut = -select(buf, n, k - 1)  # exact: a float32 value held in a float64
+        buf[2 * n + i] = -rho[i]
+    neg_cut, _ = kth_and_below(buf[2 * n : 3 * n], n, k - 1, buf)
+    cut = -neg_cut  # exact: a float32 value held in a float64
     above = 0
     ties = 0
-    for i in range(n):
-        if rho[i] > cut:
-            top[above] = i
-            above += 1
-        elif rho[i] == cut:
-            ties += 1
+    for i in range(n):  # without data-dependent branches
+        top[above] = i
+        above += rho[i] > cut
+        ties += rho[i] == cut
     need = k - above
     filled = 0
     for i in range(n):
@@ -197,9 +209,9 @@ def helpers():
     """The helpers below compiled, once: they replace the plain functions in this module's
     namespace first, so a helper that calls another (``kth_smallest`` calls ``select``) is
     compiled against the compiled one. Returns ``(unit, select, kth_smallest,
-    choose_by_rule, pick_by_rule)``."""
+    choose_by_rule, pick_by_rule)``; ``kth_and_below`` is compiled with them (module global)."""
     global _HELPERS, unit, select, split, middle_of_three, kth_smallest, choose_by_rule
-    global pick_by_rule
+    global pick_by_rule, kth_and_below
     with LOCK:
         if _HELPERS is None:
             unit = jit(unit, inline=True)
@@ -207,6 +219,7 @@ def helpers():
             select = jit(select)
             split = jit(split, inline=True)
             middle_of_three = jit(middle_of_three, inline=True)
+            kth_and_below = jit(kth_and_below, inline=True)
             kth_smallest = jit(kth_smallest)
             pick_by_rule = jit(pick_by_rule)
             _HELPERS = (unit, select, kth_smallest, choose_by_rule, pick_by_rule)

@@ -38,9 +38,9 @@ THREAD_MIN_POINTS = 2048
 
 _unit = compiled.unit
 _select = compiled.select
-_kth = compiled.kth_smallest
 _choose = compiled.choose_by_rule
 _pick = compiled.pick_by_rule
+_kth_below = compiled.kth_and_below
 
 
 def available(device: torch.device, dtype: torch.dtype) -> bool:
@@ -66,7 +66,7 @@ def _blend_points(
     width = kid_t.shape[1]
     n_kernels = attrs.shape[0]
     d2 = np.empty(width, np.float64)
-    part = np.empty(2 * width, np.float64)
+    part = np.empty(3 * width, np.float64)
     pos = np.empty(width, np.int64)
     cd2 = np.empty(width, np.float64)
     rho = np.empty(width, np.float32)
@@ -88,10 +88,7 @@ def _blend_points(
         # K_s cut: the k_s smallest distances, ties by kernel id (row order is kernel order)
         m = k_s if k_s < n else n
         if m < n:
-            kth = _kth(d2, n, m - 1, part)
-            less = 0
-            for j in range(n):
-                less += d2[j] < kth
+            kth, less = _kth_below(d2, n, m - 1, part)
             ties = m - less
             taken = 0
             for j in range(n):  # without data-dependent branches (they mispredict half the time)
@@ -148,9 +145,10 @@ _COMPILED = None
 
 def _kernel():
     """The compiled ``_blend_points`` (built on first use)."""
-    global _COMPILED, _select, _unit, _choose, _kth, _pick
+    global _COMPILED, _select, _unit, _choose, _pick, _kth_below
     if _COMPILED is None:
-        _unit, _select, _kth, _choose, _pick = compiled.helpers()
+        _unit, _select, _, _choose, _pick = compiled.helpers()
+        _kth_below = compiled.kth_and_below
         _COMPILED = compiled.jit(_blend_points)
     return _COMPILED
 
