@@ -232,7 +232,14 @@ PRESETS: dict[str, FitParams] = {
 }
 
 
-PRESETS["default"] = replace(PRESETS["later"], polish_colors=True, sampling="error")
+#: ``lr_sharpness`` 0.2 instead of the later configuration's 0.00129: with projected Adam on the
+#: raw sharpness that rate moves ``k`` by at most ~2.5 over a whole fit, so every kernel kept
+#: its initial 10-50 and edges stayed soft; at 0.2 all five shared meshes gained 0.6-4.5 dB
+#: (benchmarks/results/fidelity.md, rows ``default:{"lr_sharpness":0.2}``; docs/fitting.md).
+DEFAULT_LR_SHARPNESS = 0.2
+PRESETS["default"] = replace(
+    PRESETS["later"], polish_colors=True, sampling="error", lr_sharpness=DEFAULT_LR_SHARPNESS
+)
 
 #: The preset a fit starts from when none is named: ``"default"``, the authors' later
 #: configuration plus the least-squares colour solve and error-driven training points, chosen
