@@ -235,11 +235,9 @@ def _smooth_albedo(V, F):
     return fn
 
 
-def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
-    """The per-render point cache is exact: the image equals the one where every request is
-    evaluated, while the albedo runs on fewer points; the gradients are the same too."""
+def _counting_scene(R):
+    """An icosphere scene whose smooth albedo records how many points each call asks about."""
     from hktex_engine.evaluation.synthetic import icosphere
-    from hktex_engine.render import mitsuba as rm
 
     V, F = icosphere(2)
     counts = []
@@ -250,7 +248,15 @@ def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
         return base(f, b)
 
     scene = R.RenderScene(V, F, R.RenderSettings(width=24, height=24, spp=4), albedo_fn=fn)
-    cam = R.orbit_camera(V, 20, 10)
+    return V, F, scene, R.orbit_camera(V, 20, 10), counts
+
+
+def test_point_cache_renders_equal_uncached_and_evaluates_less(R, monkeypatch):
+    """The per-render point cache is exact: the image equals the one where every request is
+    evaluated, while the albedo runs on fewer points; the gradients are the same too."""
+    from hktex_engine.render import mitsuba as rm
+
+    V, F, scene, cam, counts = _counting_scene(R)
     cached = scene.render(cam, seed=3, cache=True)
     evaluated = sum(counts)
     # one albedo call on the recorded distinct points; the second pass asked for no other
@@ -299,19 +305,9 @@ def test_bounce_memo_renders_equal_the_torch_glue_and_evaluates_less(R, monkeypa
     """A plain render on the CPU answers through the bounce memo: the image equals the one the
     torch glue gives when every request is evaluated (to the sRGB curve's float32 round-off),
     while the albedo runs on fewer points (each bounce's repeated hits answered once)."""
-    from hktex_engine.evaluation.synthetic import icosphere
     from hktex_engine.render import mitsuba as rm
 
-    V, F = icosphere(2)
-    counts = []
-    base = _smooth_albedo(V, F)
-
-    def fn(f, b):
-        counts.append(len(f))
-        return base(f, b)
-
-    scene = R.RenderScene(V, F, R.RenderSettings(width=24, height=24, spp=4), albedo_fn=fn)
-    cam = R.orbit_camera(V, 20, 10)
+    V, F, scene, cam, counts = _counting_scene(R)
     memo = scene.render(cam, seed=3)
     assert scene.last_memo.asked > scene.last_memo.evaluated == sum(counts) > 0
     evaluated = sum(counts)
