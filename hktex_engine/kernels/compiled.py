@@ -36,31 +36,6 @@ def unit(v):
     return max(min(v, np.float32(1.0)), np.float32(0.0))
 
 
-def select(a, n, k):
-    """The ``k``-th smallest (0-based) of ``a[:n]``, reordering ``a`` in place (Hoare's
-    quickselect, middle pivot; ``np.partition`` would allocate a copy per point)."""
-    lo, hi = 0, n - 1
-    while lo < hi:
-        pivot = a[(lo + hi) // 2]
-        i, j = lo, hi
-        while i <= j:
-            while a[i] < pivot:
-                i += 1
-            while a[j] > pivot:
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return a[k]
-
-
 def split(src, s0, cnt, pivot, dst, d0):
     """``src[s0:s0 + cnt]``'s entries below ``pivot`` to the front of ``dst[d0:d0 + cnt]`` and
     those above it to its back, without a data-dependent branch (every entry is written to
@@ -206,23 +181,23 @@ _HELPERS = None
 
 
 def helpers():
-    """The helpers below compiled, once: they replace the plain functions in this module's
-    namespace first, so a helper that calls another (``kth_smallest`` calls ``select``) is
-    compiled against the compiled one. Returns ``(unit, select, kth_smallest,
-    choose_by_rule, pick_by_rule)``; ``kth_and_below`` is compiled with them (module global)."""
-    global _HELPERS, unit, select, split, middle_of_three, kth_smallest, choose_by_rule
+    """The helpers above compiled, once: they replace the plain functions in this module's
+    namespace first, so a helper that calls another (``kth_smallest`` calls
+    ``kth_and_below``, which calls ``split``) is compiled against the compiled one. Returns
+    ``(unit, kth_smallest, choose_by_rule, pick_by_rule)``; ``kth_and_below`` is compiled with
+    them (a module global)."""
+    global _HELPERS, unit, split, middle_of_three, kth_smallest, choose_by_rule
     global pick_by_rule, kth_and_below
     with LOCK:
         if _HELPERS is None:
             unit = jit(unit, inline=True)
             choose_by_rule = jit(choose_by_rule, inline=True)
-            select = jit(select)
             split = jit(split, inline=True)
             middle_of_three = jit(middle_of_three, inline=True)
             kth_and_below = jit(kth_and_below, inline=True)
             kth_smallest = jit(kth_smallest)
             pick_by_rule = jit(pick_by_rule)
-            _HELPERS = (unit, select, kth_smallest, choose_by_rule, pick_by_rule)
+            _HELPERS = (unit, kth_smallest, choose_by_rule, pick_by_rule)
     return _HELPERS
 
 

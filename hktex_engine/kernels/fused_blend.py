@@ -37,7 +37,6 @@ ENABLED = compiled.ENABLED
 THREAD_MIN_POINTS = 2048
 
 _unit = compiled.unit
-_select = compiled.select
 _choose = compiled.choose_by_rule
 _pick = compiled.pick_by_rule
 _kth_below = compiled.kth_and_below
@@ -145,9 +144,9 @@ _COMPILED = None
 
 def _kernel():
     """The compiled ``_blend_points`` (built on first use)."""
-    global _COMPILED, _select, _unit, _choose, _pick, _kth_below
+    global _COMPILED, _unit, _choose, _pick, _kth_below
     if _COMPILED is None:
-        _unit, _select, _, _choose, _pick = compiled.helpers()
+        _unit, _, _choose, _pick = compiled.helpers()
         _kth_below = compiled.kth_and_below
         _COMPILED = compiled.jit(_blend_points)
     return _COMPILED

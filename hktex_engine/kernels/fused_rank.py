@@ -204,7 +204,7 @@ def _kernels():
     global _choose, _GROUP
     if _RANK is None:
         _GROUP = compiled.jit(_group)
-        _unit, _, _, _choose, _ = compiled.helpers()
+        _unit, _, _choose, _ = compiled.helpers()
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
         _exact_d2 = compiled.jit(_exact_d2, inline=True, fastmath=compiled.SIMD_SUMS)
