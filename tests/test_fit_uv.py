@@ -232,6 +232,28 @@ def test_presets_are_the_two_configurations_of_algorithm_md():
         fit_preset("nope")
 
 
+def test_default_preset_is_later_with_only_the_measured_changes():
+    """The product's default differs from the authors' later configuration in exactly the
+    fields docs/fitting.md measured ("Choosing the defaults"), and `later` keeps their rates."""
+    from dataclasses import fields
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS
+
+    later, default = PRESETS["later"], PRESETS[DEFAULT_PRESET]
+    changed = {
+        f.name: getattr(default, f.name)
+        for f in fields(FitParams)
+        if getattr(default, f.name) != getattr(later, f.name)
+    }
+    assert changed == {
+        "polish_colors": True,
+        "sampling": "error",
+        "lr_sharpness": 0.2,
+        "lr_threshold": 0.0055,
+    }
+    assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
+
+
 def test_spectra_k_follows_the_preset(monkeypatch, tmp_path):
     """K = 64 by default (measured enough at t = 0.06245); the earlier regime asks for 256."""
     from hktex_engine.cli import cmd_fit
