@@ -5,7 +5,8 @@
 
 Each ``--run`` is ``PRESET[+polish][:JSON overrides of FitParams]`` (``spectra_k`` in the JSON
 picks the spectra's K for that run). ``--subdivide N`` fits on the mesh midpoint-subdivided N
-times (the same surface; rows labelled ``@midN``), scored on the same points. Per mesh and run: a UV fit, then
+times (the same surface; rows labelled ``@midN``), scored on the same points. Per mesh and
+run: a UV fit, then
 
 - surface PSNR (EVALUATION.md: 60,000 points, seed 0) and the kernel set's zipped bytes;
 - vertex colours **of equal bytes**: PSNR of the L0-L3 baselines interpolated linearly in
@@ -76,22 +77,20 @@ def parse_run(spec: str) -> tuple[str, dict]:
     return spec, {"preset": preset, **over}
 
 
-def refined(mesh, levels: int, eval_f, eval_b):
-    """The mesh midpoint-subdivided ``levels`` times (the same surface, 4^levels x the faces)
-    and the evaluation points located on it: the probe of a kernel set fitted on finer
-    triangles, scored on the very points (and against the very vertex colours) of the
-    original. Why: eigenfunctions are interpolated linearly inside a face (ALGORITHM.md 2), so
-    a footprint's boundary is about one straight segment per face (docs/fitting.md, sixth
-    pass)."""
+def refined_mesh(mesh, levels: int):
+    """The mesh midpoint-subdivided ``levels`` times: the same surface with 4^levels x the
+    faces, for a kernel set fitted on finer triangles and scored on the original's points
+    (located on it by ``subdivided_location``). Why: eigenfunctions are interpolated linearly
+    inside a face (ALGORITHM.md 2), so a footprint's boundary is about one straight segment
+    per face (docs/fitting.md, sixth pass)."""
     from dataclasses import replace
 
     v, f, uv = mesh.vertices, mesh.faces, mesh.corner_uvs
     for _ in range(levels):
         v, f, uv = midpoint_subdivide(v, f, uv)
-    fine = replace(
+    return replace(
         mesh, vertices=v, faces=f, corner_uvs=uv, content_hash=f"{mesh.content_hash}-mid{levels}"
     )
-    return (fine, *subdivided_location(eval_f, eval_b, levels))
 
 
 def vertex_colour_curve(mesh, eval_f, eval_b, target) -> list[dict]:
@@ -223,7 +222,7 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
             f, b, target = surface_samples(mesh, 60_000, 0)
             curve = vertex_colour_curve(mesh, f, b, target)
             if key[1]:
-                mesh, f, b = refined(mesh, key[1], f, b)
+                mesh, (f, b) = refined_mesh(mesh, key[1]), subdivided_location(f, b, key[1])
             meshes[key] = (mesh, f, b, target, curve)
         mesh, f, b, target, curve = meshes[key]
         spectra = None
@@ -367,7 +366,8 @@ def main() -> int:
         curve = vertex_colour_curve(mesh, eval_f, eval_b, target)
         print(name, "vertex colours", curve, flush=True)
         if args.subdivide:
-            mesh, eval_f, eval_b = refined(mesh, args.subdivide, eval_f, eval_b)
+            mesh = refined_mesh(mesh, args.subdivide)
+            eval_f, eval_b = subdivided_location(eval_f, eval_b, args.subdivide)
         for spec in args.run:
             label, over = parse_run(spec)
             if args.subdivide:

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from _machine import machine_info, machine_line
-from fidelity import DATA, MESHES, RESULTS, at_equal_bytes, refined
+from fidelity import DATA, MESHES, RESULTS, at_equal_bytes, refined_mesh
 
 from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.baselines import VertexColorBaseline, subdivided_location
@@ -68,7 +68,7 @@ def score_set(
     views ask for is located on the finer mesh first."""
     ks = load_hkt(path)
     ef, eb, target = surface_samples(mesh, 60_000, 0)
-    fit_mesh = refined(mesh, subdivide, ef, eb)[0] if subdivide else mesh
+    fit_mesh = refined_mesh(mesh, subdivide) if subdivide else mesh
     spectra = cache.get_or_compute(fit_mesh, SpectralConfig(angles=7, k=k))
     on_fit_mesh = kernelset_albedo_fn(spectra, ks)
 

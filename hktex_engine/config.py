@@ -238,10 +238,10 @@ PRESETS: dict[str, FitParams] = {
 #: (benchmarks/results/fidelity.md, rows ``default:{"lr_sharpness":0.2}``; docs/fitting.md).
 DEFAULT_LR_SHARPNESS = 0.2
 #: ``lr_threshold`` 0.0055 instead of the later configuration's 0.00109: once edges sharpen, the
-#: level set each kernel cuts (its threshold) has to move with them; 5x the rate gained
-#: +0.26..+1.71 dB on all five shared meshes with fewer kernels surviving the prune
-#: (benchmarks/results/fidelity.md, rows ``default:{"lr_threshold":0.0055}``; 0.02 on spot:
-#: 44.27 dB against 44.13, within run-to-run spread).
+#: level set each kernel cuts (its threshold) has to move with them; in seven paired fits on
+#: two VMs 5x the rate gained +0.26..+3.41 dB six times and lost 1.32 dB once (blub, inside its
+#: machine-to-machine spread), with 10-18 % fewer kernels surviving (benchmarks/results/
+#: fidelity.md; docs/fitting.md, sixth pass; 0.02 on spot: 44.27 dB against 44.13).
 DEFAULT_LR_THRESHOLD = 0.0055
 PRESETS["default"] = replace(
     PRESETS["later"],
