@@ -118,7 +118,7 @@ def child_ours(args: argparse.Namespace) -> dict:
     reset_peak()
     config = config_from(args)
     t0 = time.perf_counter()
-    from hktex_engine.spectra.grid import auto_workers
+    from hktex_engine.spectra.cores import auto_workers
 
     workers = auto_workers() if args.workers == "auto" else int(args.workers)
     sp = compute_spectra(

@@ -8,12 +8,17 @@ from __future__ import annotations
 import argparse
 import threading
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from hktex_server.settings import Settings
+if TYPE_CHECKING:
+    from hktex_server.settings import Settings
 
 
 def settings_from(args: argparse.Namespace, **extra: Any) -> Settings:
+    # imported here: every ``hktex`` command registers this module's parsers, and pydantic
+    # settings cost ~0.1 s of each command's start (a tenth of a small ``hktex spectra``)
+    from hktex_server.settings import Settings
+
     given = {
         "host": getattr(args, "host", None),
         "port": getattr(args, "port", None),

@@ -267,6 +267,9 @@ def test_obj_with_mtl_texture_round_trip(tmp_path):
     np.testing.assert_array_equal(mesh.corner_uvs, uv)
     np.testing.assert_allclose(mesh.texture, tex, atol=0.5 / 255 + 1e-6)
     assert mesh.content_hash == mesh_from_arrays(v, f).content_hash
+    bare = load_mesh(path, read_texture=False)  # what spectra read: geometry, UVs, no image
+    assert bare.texture is None and bare.content_hash == mesh.content_hash
+    np.testing.assert_array_equal(bare.corner_uvs, uv)
 
 
 def test_glb_keeps_uv_convention(tmp_path):
@@ -283,6 +286,8 @@ def test_glb_keeps_uv_convention(tmp_path):
     assert mesh.texture.shape == (32, 32, 3)
     # Same triangles as the welded OBJ arrays (GLB holds float32): same content hash.
     assert mesh.content_hash == mesh_from_arrays(v, f).content_hash
+    bare = load_mesh(path, read_texture=False)
+    assert bare.texture is None and bare.content_hash == mesh.content_hash
 
 
 def test_explicit_texture_overrides_and_converts(tmp_path):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import multiprocessing
+import sys
 import threading
 from pathlib import Path
 
@@ -13,6 +15,7 @@ from hktex_engine.config import SpectralConfig
 from hktex_engine.errors import Cancelled, SpectraError
 from hktex_engine.geometry.mesh import Mesh
 from hktex_engine.geometry.operators import AlboAssembler, cotangent_stiffness, lumped_mass
+from hktex_engine.spectra import cores
 from hktex_engine.spectra import grid as spectra_mod
 from hktex_engine.spectra.alignment import align_basis, eigen_clusters
 from hktex_engine.spectra.eigensolver import eigs_cold, eigs_warm, residuals
@@ -138,6 +141,34 @@ def test_other_solvers_and_worker_processes_give_the_same_grid(mesh, tiny, kwarg
     # theta = pi is theta = 0: copied, not solved again
     methods = [e["method"] for e in tiny.manifest["solver"]["nodes"]]
     assert methods[4:] == ["copy of node 0", "copy of node 1"]
+
+
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_forked_and_spawned_workers_give_the_same_grid(mesh, tiny, monkeypatch, start):
+    if start not in multiprocessing.get_all_start_methods():
+        pytest.skip(f"no {start} here")
+    monkeypatch.setattr(spectra_mod, "worker_context", lambda: multiprocessing.get_context(start))
+    other = compute_spectra(mesh, TINY, workers=2)
+    for g in range(tiny.evals.shape[0]):
+        np.testing.assert_allclose(other.evals[g], tiny.evals[g], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(
+            np.asarray(other.evecs[:, g, :], float),
+            np.asarray(tiny.evecs[:, g, :], float),
+            atol=1e-5,
+        )
+
+
+def test_workers_fork_only_from_a_single_threaded_process_without_torch(monkeypatch):
+    """Fork saves each worker its imports, but a lock another thread holds at the fork
+    stays held in the child, and torch's OpenMP can hang a forked child: spawn then."""
+    monkeypatch.setitem(sys.modules, "torch", None)
+    assert spectra_mod.worker_context().get_start_method() == "spawn"
+    monkeypatch.delitem(sys.modules, "torch")
+    monkeypatch.setattr(threading, "active_count", lambda: 3)
+    assert spectra_mod.worker_context().get_start_method() == "spawn"
+    monkeypatch.setattr(threading, "active_count", lambda: 1)
+    expected = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    assert spectra_mod.worker_context().get_start_method() == expected
 
 
 def _albo_problem(mesh, k: int, theta: float, eta: float):
@@ -527,22 +558,39 @@ def test_cli_writes_spectra_and_prints_json_summary(mesh, tmp_path, capsys):
 def test_auto_workers_counts_the_cores_idle_now(monkeypatch):
     """Free cores are the affinity count minus the cores busy now (sampled from /proc/stat),
     falling back to the 1-minute load average where that cannot be read."""
-    monkeypatch.setattr(spectra_mod.os, "sched_getaffinity", lambda _: {0, 1, 2, 3})
-    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: 0.3)
-    assert spectra_mod.auto_workers() == 4
-    assert spectra_mod.auto_workers(nodes=3) == 3
-    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: 2.6)
-    assert spectra_mod.auto_workers() == 1
-    monkeypatch.setattr(spectra_mod, "_busy_cores", lambda: None)
-    monkeypatch.setattr(spectra_mod.os, "getloadavg", lambda: (1.2, 0.0, 0.0))
-    assert spectra_mod.auto_workers() == 3
+    monkeypatch.setattr(cores.os, "sched_getaffinity", lambda _: {0, 1, 2, 3})
+    monkeypatch.setattr(cores, "_busy_cores", lambda since=None: 0.3)
+    assert cores.auto_workers() == 4
+    assert cores.auto_workers(nodes=3) == 3
+    monkeypatch.setattr(cores, "_busy_cores", lambda since=None: 2.6)
+    assert cores.auto_workers() == 1
+    monkeypatch.setattr(cores, "_busy_cores", lambda since=None: None)
+    monkeypatch.setattr(cores.os, "getloadavg", lambda: (1.2, 0.0, 0.0))
+    assert cores.auto_workers() == 3
 
 
 def test_busy_cores_reads_proc_stat():
-    busy = spectra_mod._busy_cores(0.05)
+    busy = cores._busy_cores(0.05)
     if busy is None:
         pytest.skip("no /proc/stat here")
-    assert 0.0 <= busy <= spectra_mod.os.cpu_count() + 1e-9
+    assert 0.0 <= busy <= cores.os.cpu_count() + 1e-9
+
+
+def test_busy_cores_does_not_count_this_process(monkeypatch):
+    """Sampled over a window this process spent computing, its own core is not 'busy': the
+    command samples from before its imports and mesh load, and must still see an idle
+    machine as idle. Checked on synthetic counters: 2 cores, one busy all window long,
+    and this process's own CPU time equal to that window."""
+    a = cores.CpuSample(total=1000, idle=500, own_s=10.0, wall_s=100.0)
+    b = cores.CpuSample(total=1200, idle=600, own_s=11.0, wall_s=101.0)
+    monkeypatch.setattr(cores.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(cores, "cpu_sample", lambda: b)
+    monkeypatch.setattr(cores.time, "monotonic", lambda: 101.0)
+    assert cores._busy_cores(since=a) == pytest.approx(0.0)
+    # another process using the other core as well: one core busy that is not ours
+    b2 = cores.CpuSample(total=1200, idle=500, own_s=11.0, wall_s=101.0)
+    monkeypatch.setattr(cores, "cpu_sample", lambda: b2)
+    assert cores._busy_cores(since=a) == pytest.approx(1.0)
 
 
 def test_in_process_solves_use_one_blas_thread(monkeypatch, mesh):

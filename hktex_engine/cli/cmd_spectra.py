@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 from hktex_engine.config import SpectralConfig
+from hktex_engine.spectra.cores import cpu_sample
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -78,12 +79,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="processes for independent node solves; 'auto' (default): the free cores",
     )
     p.add_argument("--max-vertices", type=int, default=60000, help="refuse bigger meshes")
-    p.set_defaults(func=run)
+    # the free cores are sampled from here, before the heavy imports and the mesh load, so
+    # the window auto_workers needs is time the command spends anyway
+    p.set_defaults(func=run, cpu_since=cpu_sample())
 
 
 def run(args: argparse.Namespace) -> dict:
     from hktex_engine.cli import TerminalProgress
     from hktex_engine.geometry.mesh import load_mesh
+    from hktex_engine.spectra.cores import auto_workers
     from hktex_engine.spectra.grid import compute_spectra
 
     config = SpectralConfig(
@@ -95,19 +99,17 @@ def run(args: argparse.Namespace) -> dict:
         evecs_dtype=args.evecs_dtype,
         tangent_field=args.tangent_field,
     )
-    if args.workers == "auto":
-        from hktex_engine.spectra.grid import auto_workers
-
-        args.workers = auto_workers()
-    if args.workers < 1:
+    if args.workers != "auto" and args.workers < 1:
         raise ValueError("--workers must be >= 1")
     if not args.mesh.is_file():
         raise FileNotFoundError(f"mesh file not found: {args.mesh}")
     if args.output.exists() and not (args.output / "manifest.json").is_file():
         raise ValueError(f"{args.output} exists and is not a spectra directory; not replacing it")
     t0 = time.perf_counter()
-    mesh = load_mesh(args.mesh, max_vertices=args.max_vertices)
+    mesh = load_mesh(args.mesh, max_vertices=args.max_vertices, read_texture=False)
     t_load = time.perf_counter() - t0
+    if args.workers == "auto":
+        args.workers = auto_workers(since=args.cpu_since)
     bar = TerminalProgress("spectra")
     try:
         spectra = compute_spectra(

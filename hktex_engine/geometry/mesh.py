@@ -14,10 +14,10 @@ import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
-import trimesh
 from PIL import Image
 from scipy.sparse.csgraph import connected_components
 
@@ -31,6 +31,9 @@ from hktex_engine.errors import (
     TooManyVerticesError,
     UnreadableMeshError,
 )
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 @dataclass
@@ -107,13 +110,16 @@ def load_mesh(
     texture: TextureSource = None,
     max_vertices: int = 60000,
     file_type: str | None = None,
+    read_texture: bool = True,
 ) -> Mesh:
     """Read, validate and normalise a triangle mesh file (OBJ, PLY, OFF, GLB, glTF).
 
     ``texture`` (a path or an array) overrides whatever the file embeds or references; the
     spot and blub OBJs name no material, so their texture must come this way. ``file_type``
     overrides the extension (uploads may arrive under temporary names); without either the
-    format is sniffed from the first bytes.
+    format is sniffed from the first bytes. ``read_texture=False`` skips decoding the
+    texture a file references or embeds (spectra need geometry only, and decoding bob's
+    2k PNG was 0.2 s of a 4 s ``hktex spectra``); the content hash is the same either way.
     """
     path = Path(path)
     if not path.is_file():
@@ -121,10 +127,10 @@ def load_mesh(
     kind = _detect_format(path, file_type)
     limit = RAW_ELEMENT_FACTOR * max_vertices
     if kind == "obj":
-        raw = _read_obj(path, limit)
+        raw = _read_obj(path, limit, read_texture)
     else:
         _precheck_counts(path, kind, limit)
-        raw = _read_with_trimesh(path, kind)
+        raw = _read_with_trimesh(path, kind, read_texture)
     tex = load_texture(texture) if texture is not None else raw.texture
     return _build_mesh(
         raw.positions, raw.faces, raw.corner_uvs, tex, max_vertices, source_name=path.name
@@ -196,7 +202,7 @@ def _detect_format(path: Path, file_type: str | None) -> str:
     return "obj"
 
 
-def _read_obj(path: Path, limit: int) -> _RawMesh:
+def _read_obj(path: Path, limit: int, read_texture: bool = True) -> _RawMesh:
     """Strict OBJ reader keeping per-corner UVs in the file's face order.
 
     Written by hand because trimesh's OBJ loader (5.x) silently accepts truncated lines
@@ -229,7 +235,7 @@ def _read_obj(path: Path, limit: int) -> _RawMesh:
         pos, faces, corner_uvs = fast
     else:
         pos, faces, corner_uvs = _parse_obj_lines(path, lines)
-    texture = _obj_material_texture(path, mtllibs, materials_used)
+    texture = _obj_material_texture(path, mtllibs, materials_used) if read_texture else None
     return _RawMesh(pos, faces, corner_uvs, texture)
 
 
@@ -502,8 +508,15 @@ def _gltf_counts(path: Path) -> tuple[int, int]:
     return sum(per_mesh[i][0] for i in used), sum(per_mesh[i][1] for i in used)
 
 
-def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
-    """PLY, OFF, STL, GLB and glTF through trimesh, unprocessed so face order is kept."""
+def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _RawMesh:
+    """PLY, OFF, STL, GLB and glTF through trimesh, unprocessed so face order is kept.
+
+    trimesh is imported here, not at the top: it costs ~0.3 s (networkx, scipy.spatial), and
+    OBJ, the common case, is read by our own parser (``hktex spectra`` on a 3-9k-vertex
+    OBJ takes a few seconds in all, so that was a tenth of it).
+    """
+    import trimesh
+
     try:
         loaded = trimesh.load(str(path), file_type=kind, process=False)
     except (MemoryError, RecursionError):
@@ -538,7 +551,7 @@ def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
         uv_parts.append(
             None if uv is None or len(uv) != len(v) else np.asarray(uv, dtype=np.float64)[f]
         )
-        textures.append(_trimesh_texture(g, image_cache))
+        textures.append(_trimesh_texture(g, image_cache) if read_texture else None)
     corner_uvs = None
     if all(u is not None for u in uv_parts):
         corner_uvs = np.concatenate(uv_parts, axis=0).reshape(-1, 3, 2)
@@ -554,6 +567,8 @@ def _read_with_trimesh(path: Path, kind: str) -> _RawMesh:
 
 def _scene_meshes(scene: trimesh.Scene) -> list[trimesh.Trimesh]:
     """Every mesh instance of a scene, with its node transform applied, in graph order."""
+    import trimesh
+
     out = []
     for node in scene.graph.nodes_geometry:
         transform, name = scene.graph[node]

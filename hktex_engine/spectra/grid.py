@@ -11,7 +11,9 @@ import json
 import multiprocessing
 import os
 import shutil
+import sys
 import tempfile
+import threading
 import time
 import uuid
 from collections import deque
@@ -194,6 +196,26 @@ def _operator_key(theta: float, eta: float) -> tuple[float, float]:
 _THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+def worker_context() -> multiprocessing.context.BaseContext:
+    """How worker processes start: forked where that is safe, spawned elsewhere.
+
+    A forked worker starts with every import done; a spawned one imports numpy and scipy
+    afresh, ~0.25 s of a core each, measured as ~0.5 s of the 4.9 s ``hktex spectra`` takes
+    on a 7,106-vertex mesh (blub, two workers). Forking is safe when this process runs a
+    single Python thread (a lock another thread holds at the fork stays held in the child
+    for ever) and has no OpenMP runtime loaded (torch's: a forked child that enters OpenMP
+    can hang); OpenBLAS resets its own threads at a fork. The command line is that case; a
+    service process (threads, torch) spawns.
+    """
+    if (
+        "fork" in multiprocessing.get_all_start_methods()
+        and threading.active_count() == 1
+        and "torch" not in sys.modules
+    ):
+        return multiprocessing.get_context("fork")
+    return multiprocessing.get_context("spawn")
+
+
 def _cold_solutions(
     tasks: Iterator[tuple[sp.csr_matrix, int, float, float]],
     mass: np.ndarray,
@@ -205,8 +227,8 @@ def _cold_solutions(
 
     At most ``2 * workers + 1`` results are in flight, so memory stays bounded by a few bases
     however large the grid, and the workers keep busy while this process waits on a long
-    task (the isotropic solve, first in the queue, takes 2-3 nodes' time). Worker processes are spawned (not forked) so no BLAS thread
-    pool state is inherited.
+    task (the isotropic solve, first in the queue, takes 2-3 nodes' time). Workers start as
+    :func:`worker_context` says.
     """
     if workers <= 1:
         # one BLAS thread: the block solver's tall-skinny GEMMs ran 2x *slower* with
@@ -215,9 +237,10 @@ def _cold_solutions(
             for L, k, estimate, tol in tasks:
                 yield solve_node_timed(L, mass, k, estimate, solver, tol)
         return
-    ctx = multiprocessing.get_context("spawn")
+    ctx = worker_context()
     # one BLAS thread per worker (the workers are the parallelism; spawned children read
-    # these at start-up), unless the caller chose otherwise
+    # these at start-up, forked ones inherit the limit set below), unless the caller chose
+    # otherwise
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
@@ -244,54 +267,6 @@ def _cold_solutions(
         for v, old in saved.items():
             if old is None:
                 os.environ.pop(v, None)
-
-
-def _busy_cores(window_s: float = 0.25) -> float | None:
-    """Cores busy right now: the non-idle share of CPU time over a short window of
-    ``/proc/stat``, times the core count (None where there is no ``/proc/stat``).
-
-    Why not the 1-minute load average alone: it lags by a minute, so a command started
-    right after other work (a benchmark's previous step, a finished fit) saw a busy
-    machine that was idle by then and ran one worker instead of two.
-    """
-
-    def sample() -> tuple[int, int] | None:
-        try:
-            with open("/proc/stat") as fh:
-                fields = [int(x) for x in fh.readline().split()[1:]]
-        except (OSError, ValueError):
-            return None
-        idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
-        return sum(fields), idle
-
-    a = sample()
-    if a is None:
-        return None
-    time.sleep(window_s)
-    b = sample()
-    if b is None or b[0] <= a[0]:
-        return None
-    busy_share = 1.0 - (b[1] - a[1]) / (b[0] - a[0])
-    return busy_share * (os.cpu_count() or 1)
-
-
-def auto_workers(nodes: int | None = None) -> int:
-    """Worker processes for independent node solves: the cores this process may use that
-    are not busy now (affinity count minus the cores busy over the last quarter second,
-    or minus the 1-minute load average where that cannot be read), rounded, at least 1,
-    at most ``nodes``. On an idle 2-core machine that is 2; with a fit running, 1."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        cores = os.cpu_count() or 1
-    busy = _busy_cores()
-    if busy is None:
-        try:
-            busy = os.getloadavg()[0]
-        except OSError:  # pragma: no cover
-            busy = 0.0
-    free = max(1, min(cores, int(round(cores - busy))))
-    return free if nodes is None else max(1, min(free, nodes))
 
 
 def _node_plan(thetas: np.ndarray, etas: np.ndarray) -> list[tuple[int, float, float, str, int]]:

@@ -113,7 +113,10 @@ def _load_mesh_with_hash(ctx: TaskContext, mesh_hash: str, prefer_id: str | None
             ).scalar_one_or_none()
     if row is None:
         raise FileNotFoundError("the mesh of this job was deleted")
-    return load_mesh(ctx.store.abs(row.mesh_blob), max_vertices=ctx.settings.max_vertices)
+    # spectra need the geometry only: the texture is not decoded
+    return load_mesh(
+        ctx.store.abs(row.mesh_blob), max_vertices=ctx.settings.max_vertices, read_texture=False
+    )
 
 
 # ---------------------------------------------------------------- fitting
