@@ -249,6 +249,17 @@ def measure_file(row: dict, ks, mesh, spectra, f, b, target, curve) -> None:
         row["quantised_auto"] = auto_row(quantisation_for(mesh, spectra, ks, f, b, target), curve)
 
 
+def _diagnostics(r: dict) -> str:
+    """The fit's diagnostic columns (absent from a row rescued from its saved set alone)."""
+    sp, sat = r["split"], r["saturation"]
+    return (
+        f"| {sp['edge_error_share']:.2f} ({sp['edge_fraction']:.2f} of pts) "
+        f"| {sp['psnr_edge']:.1f} / {sp['psnr_flat']:.1f} "
+        f"| {sat['saturated_mean']:.1f} | {sat['points_over_k_blend']:.2f} "
+        f"| {r['truncation']:.2g} | {r['fit_s']:.0f} |"
+    )
+
+
 def write_table(jsonl: Path, md: Path, command: str) -> None:
     rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
     lines = [
@@ -269,7 +280,7 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
         qb = r.get("bytes_zip_quantised")
         mlp = (r.get("mlp_equal_samples") or {}).get("psnr")
         cs = r.get("colour_solve") or {}
-        sp = r["split"]
+        sp = r.get("split")
         version = r.get("quantised_version")
         quant = (
             f"| {qb / 1e3:.1f}{'' if version and version >= 3 else ' (v2)'} "
@@ -294,10 +305,7 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
             + quant
             + f"| {'-' if mlp is None else f'{mlp:.2f}'} "
             f"| {cs.get('surface_psnr_before', float('nan')):.2f} "
-            f"| {sp['edge_error_share']:.2f} ({sp['edge_fraction']:.2f} of pts) "
-            f"| {sp['psnr_edge']:.1f} / {sp['psnr_flat']:.1f} "
-            f"| {r['saturation']['saturated_mean']:.1f} | {r['saturation']['points_over_k_blend']:.2f} "
-            f"| {r['truncation']:.2g} | {r['fit_s']:.0f} |"
+            + (_diagnostics(r) if sp else "| - | - | - | - | - | - |")
         )
     lines += [
         "",
@@ -323,7 +331,9 @@ def main() -> int:
     ap.add_argument("--meshes", nargs="+", default=["spot"], choices=sorted(MESHES))
     ap.add_argument("--run", action="append", default=[], help="PRESET[+polish][:JSON]")
     ap.add_argument("--angles", type=int, default=7)
-    ap.add_argument("--k", type=int, default=64, help="spectra K unless a run sets spectra_k")
+    ap.add_argument(
+        "--k", type=int, default=SpectralConfig().k, help="spectra K unless a run sets spectra_k"
+    )
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hktex" / "spectra")
     ap.add_argument("--pictures", type=Path, default=None, help="folder for error maps")
     ap.add_argument("--save", type=Path, default=None, help="folder for the fitted .hkt files")

@@ -82,6 +82,7 @@ def score_set(
     return {
         "mesh": name,
         "subdivide": subdivide,
+        "spectra_k": k,
         "hkt": str(path),
         "kernels": len(ks),
         "surface_psnr": surface,
@@ -110,8 +111,12 @@ def rebyte(jsonl: Path) -> None:
 
 
 def mid(row: dict) -> str:
-    """The table's mark of a set fitted on a subdivided mesh."""
-    return f" @mid{row['subdivide']}" if row.get("subdivide") else ""
+    """The table's mark of a set fitted on a subdivided mesh, or on spectra of K other than
+    64 (the rows before 2026-12-03 noon, which carry no K, were all fitted on 64)."""
+    k = row.get("spectra_k", 64)
+    return (f" @mid{row['subdivide']}" if row.get("subdivide") else "") + (
+        f" K={k}" if k != 64 else ""
+    )
 
 
 def write_table(jsonl: Path, md: Path) -> None:
@@ -152,7 +157,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--mesh", required=True, choices=sorted(MESHES))
     ap.add_argument("--hkt", type=Path, nargs="+", required=True)
-    ap.add_argument("--k", type=int, default=64, help="spectra K the sets were fitted on")
+    ap.add_argument(
+        "--k", type=int, default=SpectralConfig().k, help="spectra K the sets were fitted on"
+    )
     ap.add_argument(
         "--subdivide", type=int, default=0, help="the sets were fitted with fidelity.py --subdivide"
     )

@@ -23,10 +23,14 @@ class SpectralConfig:
     """What decides a spectra artefact: the grid and its numerics.
 
     ``angles`` nodes span [0, pi] with both ends; ``anisotropies`` are eta values (grid
-    coordinate s = ln(1 + eta)). ``k`` defaults to 64, not ALGORITHM.md's 256: with the default
-    preset (t = 0.06245) fits on K = 64 scored as well or better (spot 28.88 vs 28.57 dB, bob
-    22.43 vs 22.25 at 400 steps) in a fifth of the time, and the spectra are 4x smaller; the
-    ``earlier`` preset (t = 8.133e-4) needs 256 (:data:`PRESET_SPECTRA_K`). ``rotation`` is the alignment mode: "block" (Procrustes inside
+    coordinate s = ln(1 + eta)). ``k`` defaults to 128, not ALGORITHM.md's 256 nor the 64 it
+    was: with the default preset (t = 0.06245) and its full 5,000 steps, full default fits on
+    K = 128 against K = 64 (docs/fitting.md, seventh pass) scored blub +2.49 dB, bob +0.97
+    (its paper views from -2.23 to +0.13 dB against vertex colours of twice the bytes), spot
+    +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
+    features (eyes a few hundredths of the mesh wide) need the sharper truncated kernel. (At
+    400 steps of an early configuration 256 had scored no better than 64.) The ``earlier``
+    preset (t = 8.133e-4) needs 256 (:data:`PRESET_SPECTRA_K`). ``rotation`` is the alignment mode: "block" (Procrustes inside
     clusters of near-equal eigenvalues; every column stays an eigenvector) or "full" (one
     K x K Procrustes as the reference implementation does). "full" was measured to
     interpolate markedly better between nodes (docs/spectra.md, Decisions).
@@ -34,7 +38,7 @@ class SpectralConfig:
 
     angles: int = 7
     anisotropies: tuple[float, ...] = (1.0, 5.0, 15.0, 30.0, 60.0, 100.0, 200.0)
-    k: int = 64
+    k: int = 128
     k_iso: int = 65
     rotation: Literal["block", "full"] = "block"
     evecs_dtype: Literal["float16", "float32"] = "float16"
