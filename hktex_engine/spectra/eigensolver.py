@@ -500,12 +500,23 @@ def eigs_block_lowest(
     return vals, vecs, info.method + " (shift below 0)"
 
 
-#: :func:`eigs_node` uses the block solver from this many vertices per wanted pair on.
-#: Measured (shared 2-core machine, paired with plain eigsh): spot (2,930 vertices, K = 128,
-#: 23 per pair) block 0.74x of plain ARPACK, sliced ARPACK faster; tori at 78 per pair
-#: (5k / K = 64, 10k / K = 128) block 1.9-3.2x; 20k / K = 128 (156 per pair) block 1.9x
-#: while sliced ARPACK was 0.9x. The crossover lies between 23 and 78.
+#: :func:`eigs_node` uses the block solver from this many vertices per wanted pair on, at
+#: machine-precision tolerances (the isotropic spectrum's). Measured (shared 2-core machine,
+#: paired with plain eigsh): spot (2,930 vertices, K = 128, 23 per pair) block 0.74x of plain
+#: ARPACK, sliced ARPACK faster; tori at 78 per pair (5k / K = 64, 10k / K = 128) block
+#: 1.9-3.2x; 20k / K = 128 (156 per pair) block 1.9x while sliced ARPACK was 0.9x. The
+#: crossover lies between 23 and 78; re-measured 2026-12-03 at tol 1e-10, spot, K = 128:
+#: block 0.176 s a node against sliced 0.181 (level).
 BLOCK_MIN_VERTICES_PER_PAIR = 40
+
+#: The same at the grid nodes' tolerances (``GRID_TOL``, at or above
+#: :data:`PERIODIC_REORTH_MIN_TOL`), where the block solver re-orthogonalises periodically and
+#: stops early: measured 2026-12-03 on spot (one core, mean of 4 nodes, eta 1 / 15 / 60 / 200,
+#: tol 1e-6), K = 64 / 128 / 160 (46 / 23 / 18 vertices per pair): block 0.058 / 0.121 /
+#: 0.206 s against sliced ARPACK 0.092 / 0.186 / 0.306 s (plain eigsh 0.078 / 0.197 / 0.336);
+#: K = 256 (11 per pair): block 0.428 against sliced 0.381. At tol 1e-7, K = 128: 0.135
+#: against 0.193. The crossover lies between 11 and 18.
+BLOCK_MIN_VERTICES_PER_PAIR_AT_GRID_TOL = 16
 
 
 def eigs_node(
@@ -515,10 +526,15 @@ def eigs_node(
     lambda_k_estimate: float | None = None,
     tol: float = BLOCK_TOL,
 ) -> tuple[np.ndarray, np.ndarray, str]:
-    """One grid node's lowest ``k`` pairs by the solver measured faster at this size:
-    :func:`eigs_block_lowest` (to ``tol``) on big meshes, :func:`eigs_sliced` (ARPACK, to
-    machine precision) on small ones."""
-    if L.shape[0] >= BLOCK_MIN_VERTICES_PER_PAIR * k:
+    """One grid node's lowest ``k`` pairs by the solver measured faster at this size and
+    tolerance: :func:`eigs_block_lowest` (to ``tol``) where there are enough vertices per
+    wanted pair, :func:`eigs_sliced` (ARPACK, to machine precision) below that."""
+    per_pair = (
+        BLOCK_MIN_VERTICES_PER_PAIR_AT_GRID_TOL
+        if tol >= PERIODIC_REORTH_MIN_TOL
+        else BLOCK_MIN_VERTICES_PER_PAIR
+    )
+    if L.shape[0] >= per_pair * k:
         return eigs_block_lowest(L, mass, k, lambda_k_estimate, tol)
     return eigs_sliced(L, mass, k, lambda_k_estimate)
 
