@@ -4,7 +4,8 @@
         --run 'later:{"steps": 1500}' --run 'later+polish' [--minutes 20] [--k 64]
 
 Each ``--run`` is ``PRESET[+polish][:JSON overrides of FitParams]`` (``spectra_k`` in the JSON
-picks the spectra's K for that run). ``--subdivide N`` fits on the mesh midpoint-subdivided N
+picks the spectra's K for that run; ``kernel``, an object, overrides KernelConfig fields such
+as ``diffusion_time``). ``--subdivide N`` fits on the mesh midpoint-subdivided N
 times (the same surface; rows labelled ``@midN``), scored on the same points. Per mesh and
 run: a UV fit, then
 
@@ -31,6 +32,7 @@ import json
 import shlex
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -83,8 +85,6 @@ def refined_mesh(mesh, levels: int):
     (located on it by ``subdivided_location``). Why: eigenfunctions are interpolated linearly
     inside a face (ALGORITHM.md 2), so a footprint's boundary is about one straight segment
     per face (docs/fitting.md, sixth pass)."""
-    from dataclasses import replace
-
     v, f, uv = mesh.vertices, mesh.faces, mesh.corner_uvs
     for _ in range(levels):
         v, f, uv = midpoint_subdivide(v, f, uv)
@@ -144,7 +144,12 @@ def error_map_png(mesh, spectra, kernelset, path: Path, size: int = 512) -> dict
 def run_one(
     name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pictures, save
 ) -> dict:
-    params = fit_preset(over.pop("preset"), **over)
+    preset = over.pop("preset")
+    kernel = over.pop("kernel", None)  # a JSON object: KernelConfig fields over the preset's
+    params = fit_preset(preset, **over)
+    if kernel:
+        params = replace(params, kernel=replace(params.kernel, **kernel))
+        over["kernel"] = kernel
     t0 = time.perf_counter()
     res = fit_uv(mesh, spectra, params)
     wall = time.perf_counter() - t0
