@@ -79,6 +79,11 @@ def parse_run(spec: str) -> tuple[str, dict]:
     return spec, {"preset": preset, **over}
 
 
+def read_rows(jsonl: Path) -> list[dict]:
+    """A benchmark's results file: one JSON object per non-empty line."""
+    return [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+
+
 def refined_mesh(mesh, levels: int):
     """The mesh midpoint-subdivided ``levels`` times: the same surface with 4^levels x the
     faces, for a kernel set fitted on finer triangles and scored on the original's points
@@ -213,7 +218,7 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
     (a dozen queries per row, so not for every exploratory row)."""
     from hktex_engine.kernels.hkt import load_hkt
 
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    rows = read_rows(jsonl)
     meshes: dict[str, tuple] = {}
     spectra_cache = SpectraCache(cache)
     for r in rows:
@@ -266,7 +271,7 @@ def _diagnostics(r: dict) -> str:
 
 
 def write_table(jsonl: Path, md: Path, command: str) -> None:
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    rows = read_rows(jsonl)
     lines = [
         "# Fidelity per configuration (benchmarks/fidelity.py)",
         "",

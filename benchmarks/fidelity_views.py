@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from _machine import machine_info, machine_line
-from fidelity import DATA, MESHES, RESULTS, at_equal_bytes, refined_mesh
+from fidelity import DATA, MESHES, RESULTS, at_equal_bytes, read_rows, refined_mesh
 
 from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.baselines import VertexColorBaseline, subdivided_location
@@ -72,8 +72,10 @@ def score_set(
     spectra = cache.get_or_compute(fit_mesh, SpectralConfig(angles=7, k=k))
     on_fit_mesh = kernelset_albedo_fn(spectra, ks)
 
-    def albedo(face_ids, bary):
+    def on_refined(face_ids, bary):
         return on_fit_mesh(*subdivided_location(face_ids, bary, subdivide))
+
+    albedo = on_refined if subdivide else on_fit_mesh
 
     t0 = time.perf_counter()
     s = views.score(albedo)
@@ -98,7 +100,7 @@ def score_set(
 
 
 def rebyte(jsonl: Path) -> None:
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    rows = read_rows(jsonl)
     for r in rows:
         if not Path(r["hkt"]).is_file():
             continue
@@ -120,7 +122,7 @@ def mid(row: dict) -> str:
 
 
 def write_table(jsonl: Path, md: Path) -> None:
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    rows = read_rows(jsonl)
     lines = [
         "# Paper-view fidelity of fitted kernel sets",
         "",

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 from _machine import machine_info, machine_line
-from fidelity import DATA, MESHES, RESULTS
+from fidelity import DATA, MESHES, RESULTS, read_rows
 
 from hktex_engine.evaluation.baselines import MLPBaseline
 from hktex_engine.evaluation.metrics import psnr, surface_samples
@@ -54,7 +54,7 @@ def spread(name: str, seeds: list[int], steps: int, batch: int) -> dict:
 
 
 def write_table(jsonl: Path, md: Path) -> None:
-    rows = [json.loads(line) for line in jsonl.read_text().splitlines() if line.strip()]
+    rows = read_rows(jsonl)
     lines = [
         "# The MLP baseline over seeds (benchmarks/mlp_spread.py)",
         "",

@@ -30,8 +30,8 @@ class SpectralConfig:
     +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
     features (eyes a few hundredths of the mesh wide) are drawn better; K = 256 did worse on
     blub (41.55 dB against 42.65). (At 400 steps of an early configuration 256 had scored no
-    better than 64.) The ``earlier``
-    preset (t = 8.133e-4) needs 256 (:data:`PRESET_SPECTRA_K`). ``rotation`` is the alignment mode: "block" (Procrustes inside
+    better than 64.) The ``earlier`` preset (t = 8.133e-4) needs 256
+    (:data:`PRESET_SPECTRA_K`). ``rotation`` is the alignment mode: "block" (Procrustes inside
     clusters of near-equal eigenvalues; every column stays an eigenvector) or "full" (one
     K x K Procrustes as the reference implementation does). "full" was measured to
     interpolate markedly better between nodes (docs/spectra.md, Decisions).

@@ -143,19 +143,51 @@ def test_other_solvers_and_worker_processes_give_the_same_grid(mesh, tiny, kwarg
     assert methods[4:] == ["copy of node 0", "copy of node 1"]
 
 
-@pytest.mark.parametrize("start", ["fork", "spawn"])
-def test_forked_and_spawned_workers_give_the_same_grid(mesh, tiny, monkeypatch, start):
-    if start not in multiprocessing.get_all_start_methods():
-        pytest.skip(f"no {start} here")
-    monkeypatch.setattr(spectra_mod, "worker_context", lambda: multiprocessing.get_context(start))
-    other = compute_spectra(mesh, TINY, workers=2)
-    for g in range(tiny.evals.shape[0]):
-        np.testing.assert_allclose(other.evals[g], tiny.evals[g], rtol=1e-6, atol=1e-9)
+def _same_grid(a, b) -> None:
+    for g in range(a.evals.shape[0]):
+        np.testing.assert_allclose(a.evals[g], b.evals[g], rtol=1e-6, atol=1e-9)
         np.testing.assert_allclose(
-            np.asarray(other.evecs[:, g, :], float),
-            np.asarray(tiny.evecs[:, g, :], float),
-            atol=1e-5,
+            np.asarray(a.evecs[:, g, :], float), np.asarray(b.evecs[:, g, :], float), atol=1e-5
         )
+
+
+def test_spawned_workers_give_the_same_grid(mesh, tiny, monkeypatch):
+    monkeypatch.setattr(spectra_mod, "worker_context", lambda: multiprocessing.get_context("spawn"))
+    _same_grid(compute_spectra(mesh, TINY, workers=2), tiny)
+
+
+def test_the_command_line_forks_its_workers_and_stores_the_same_grid(mesh, tmp_path):
+    """``hktex spectra`` in a fresh process (one thread, no torch) forks its workers, and the
+    grid they solve is the one a single process computes. Run in a subprocess: this test
+    process holds torch and threads, where forking is what the rule forbids."""
+    import subprocess
+
+    import trimesh
+
+    from hktex_engine.geometry.mesh import load_mesh
+
+    if "fork" not in multiprocessing.get_all_start_methods():
+        pytest.skip("no fork here")
+    obj, out = tmp_path / "m.obj", tmp_path / "spectra"
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(obj)
+    code = (
+        "import sys; from hktex_engine.cli import main; code = main(sys.argv[1:]); "
+        "from hktex_engine.spectra.grid import worker_context; "
+        "print('start:', worker_context().get_start_method()); sys.exit(code)"
+    )
+    grid = ["--angles", "3", "--anisotropies", "1,10", "--k", "16", "--k-iso", "9"]
+    args = ["spectra", str(obj), "-o", str(out), *grid, "--evecs-dtype", "float32"]
+    run = subprocess.run(
+        [sys.executable, "-c", code, *args, "--workers", "2"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip().splitlines()[-1] == "start: fork"
+    stored = load_spectra(out)
+    assert stored.manifest["solver"]["workers"] == 2
+    _same_grid(stored, compute_spectra(load_mesh(obj, read_texture=False), TINY))
 
 
 def test_workers_fork_only_from_a_single_threaded_process_without_torch(monkeypatch):
