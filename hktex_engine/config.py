@@ -124,11 +124,6 @@ class DensityRules:
             raise ValueError("density stats must be 'mean' or 'step_sum'")
 
 
-#: The widest colour residual box a fit may use, and a kernel set file may hold: ``a_j`` in
-#: ``[-4, 4]^3``. The paper's box is ``[-1, 1]^3`` (ALGORITHM.md 4).
-COLOR_BOUND_LIMIT = 4.0
-
-
 @dataclass(frozen=True)
 class FitParams:
     """Fitting parameters (ALGORITHM.md sections 6-8), reference defaults.
@@ -177,11 +172,8 @@ class FitParams:
     sampling_pool: int = 1_000_000
     sampling_mix: float = 0.5
     sampling_warmup: float = 0.05
-    color_bound: float = 1.0
 
     def __post_init__(self) -> None:
-        if not 0.0 < self.color_bound <= COLOR_BOUND_LIMIT:
-            raise ValueError(f"color_bound must be in (0, {COLOR_BOUND_LIMIT}]")
         if self.sampling not in ("uniform", "error"):
             raise ValueError("sampling must be 'uniform' or 'error'")
         if not 0.0 < self.sampling_mix <= 1.0 or not 0.0 <= self.sampling_warmup <= 1.0:

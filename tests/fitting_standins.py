@@ -128,12 +128,12 @@ class ToyModel(torch.nn.Module):
         self.refreshes += 1
 
     @torch.no_grad()
-    def project_(self, color_bound: float = 1.0) -> None:
+    def project_(self) -> None:
         self.theta.clamp_(0, np.pi)
         self.s.clamp_(np.log(2.0), np.log(201.0))
         self.threshold.clamp_(0.3, 1 - 1e-4)
         self.sharpness.clamp_(10, 200)
-        self.colors.clamp_(-color_bound, color_bound)
+        self.colors.clamp_(-1, 1)
         self.base_color.clamp_(0, 1)
 
     @torch.no_grad()

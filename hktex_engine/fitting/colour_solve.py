@@ -25,7 +25,7 @@ from scipy.sparse.linalg import lsqr
 
 from hktex_engine.geometry.mesh import Mesh
 from hktex_engine.geometry.sampling import sample_surface, texture_lookup, uv_at
-from hktex_engine.kernels.model import COLOR_RANGE, HeatKernelModel
+from hktex_engine.kernels.model import HeatKernelModel
 
 #: points per no-grad evaluation chunk while building the design matrix
 CHUNK = 4096
@@ -80,7 +80,6 @@ def solve_colours(
     damp: float = DAMP,
     passes: int = PASSES,
     tol: float = TOL,
-    color_bound: float = COLOR_RANGE[1],
 ) -> dict:
     """Replace the model's colours by the least-squares optimum for its footprints.
 
@@ -123,7 +122,7 @@ def solve_colours(
             x[:, c] += sol[0]
             iters.append(int(sol[2]))
         x[0] = np.clip(x[0], 0.0, 1.0)
-        x[1:] = np.clip(x[1:], -color_bound, color_bound)
+        x[1:] = np.clip(x[1:], -1.0, 1.0)
     with torch.no_grad():
         model.base_color.copy_(torch.as_tensor(x[0], dtype=model.base_color.dtype))
         model.colors.copy_(torch.as_tensor(x[1:], dtype=model.colors.dtype))

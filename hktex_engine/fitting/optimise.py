@@ -423,7 +423,7 @@ class KernelOptimiser:
         tensors = model_tensors(self.model)
         attrs = {k: v for k, v in tensors.items() if k in self.adam.lrs}
         self.adam.step(attrs, scale)
-        self.model.project_(self.params.color_bound)  # back into their boxes (ALGORITHM.md 4)
+        self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad
         if gb is not None:
             f0 = self.model.face_ids

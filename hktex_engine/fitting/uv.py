@@ -233,9 +233,7 @@ def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
     return out
 
 
-def guarded_colour_solve(
-    model: HeatKernelModel, mesh: Mesh, rng, eval_points: int, color_bound: float = 1.0
-) -> dict:
+def guarded_colour_solve(model: HeatKernelModel, mesh: Mesh, rng, eval_points: int) -> dict:
     """The colour solve, kept only if it scores better on validation points of their own
     seed (not the evaluation points) than the optimiser's colours; else those are restored.
 
@@ -247,9 +245,7 @@ def guarded_colour_solve(
     val_f, val_b, val_target = surface_samples(mesh, n, EVAL_SEED + 2)
     kept_colors = (model.base_color.detach().clone(), model.colors.detach().clone())
     before = psnr(evaluate_albedo(model, val_f, val_b), val_target)
-    polish = solve_colours(
-        model, mesh, POLISH_POINTS_PER_KERNEL * len(model), rng, color_bound=color_bound
-    )
+    polish = solve_colours(model, mesh, POLISH_POINTS_PER_KERNEL * len(model), rng)
     after = psnr(evaluate_albedo(model, val_f, val_b), val_target)
     polish.update(validation_points=n, validation_psnr_before=before, validation_psnr_after=after)
     polish["kept"] = bool(after > before)
@@ -364,7 +360,7 @@ def fit_uv(
         t_polish = time.perf_counter()
         # the PSNR the optimiser reached, so the solve's gain (colour, not footprint) is known
         before = psnr(evaluate_albedo(model, eval_f, eval_b), eval_target)
-        polish = guarded_colour_solve(model, mesh, rng, len(eval_f), params.color_bound)
+        polish = guarded_colour_solve(model, mesh, rng, len(eval_f))
         polish["surface_psnr_before"] = before
         timings["polish_s"] = time.perf_counter() - t_polish
 

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from hktex_engine.config import COLOR_BOUND_LIMIT, KernelConfig
+from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels import fused_blend, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.knn import CandidateSearch
@@ -49,8 +49,6 @@ ETA_RANGE = (1.0, 200.0)
 #: The threshold's range is [0.3, 1); projection keeps it a hair below 1.
 THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
 SHARPNESS_RANGE = (10.0, 200.0)
-#: The paper's box for colour residuals (ALGORITHM.md 4); a fit may widen it symmetrically
-#: (``FitParams.color_bound``); a file may hold residuals up to ``config.COLOR_BOUND_LIMIT``.
 COLOR_RANGE = (-1.0, 1.0)
 BASE_RANGE = (0.0, 1.0)
 #: How ``h_j(y)`` is computed without gradients: "auto" picks per batch between the node
@@ -152,7 +150,7 @@ class KernelSet:
             SHARPNESS_RANGE[0] * (1 - eps),
             SHARPNESS_RANGE[1] * (1 + eps),
         )
-        _check_range("colors", self.colors, -COLOR_BOUND_LIMIT - eps, COLOR_BOUND_LIMIT + eps)
+        _check_range("colors", self.colors, COLOR_RANGE[0] - eps, COLOR_RANGE[1] + eps)
         _check_range("base_color", self.base_color, BASE_RANGE[0] - eps, BASE_RANGE[1] + eps)
 
 
@@ -330,14 +328,13 @@ class HeatKernelModel(nn.Module):
         return torch.expm1(self.s)
 
     @torch.no_grad()
-    def project_(self, color_bound: float = COLOR_RANGE[1]) -> None:
-        """Clamp every attribute into its range after an optimiser step; colour residuals
-        into ``[-color_bound, color_bound]``."""
+    def project_(self) -> None:
+        """Clamp every attribute into its range after an optimiser step."""
         self.theta.clamp_(*THETA_RANGE)
         self.s.clamp_(math.log1p(ETA_RANGE[0]), math.log1p(ETA_RANGE[1]))
         self.threshold.clamp_(*THRESHOLD_RANGE)
         self.sharpness.clamp_(*SHARPNESS_RANGE)
-        self.colors.clamp_(-color_bound, color_bound)
+        self.colors.clamp_(*COLOR_RANGE)
         self.base_color.clamp_(*BASE_RANGE)
         self.bary.clamp_(min=0.0)
         self.bary.div_(self.bary.sum(dim=1, keepdim=True))
