@@ -340,6 +340,31 @@ def test_lost_orthogonality_is_detected_and_redone(mesh):
     assert "block (re-orthogonalised)" in methods  # the check did fire at least once
 
 
+@pytest.mark.parametrize("dependent", ["no", "nearly", "exactly"])
+def test_orthonormal_block_factors_the_block(dependent):
+    """CholQR2 gives ``Z = Q R`` with ``Q`` orthonormal and ``R`` upper triangular, checked
+    against numpy's Householder QR (same R up to column signs); a block with dependent columns
+    (nearly: to round-off, through CholQR2; exactly, a Krylov breakdown: through the
+    rank-revealing fallback) still gives an orthonormal ``Q`` and an exact ``Z = Q R``."""
+    from hktex_engine.spectra.eigensolver import _orthonormal_block
+
+    rng = np.random.default_rng(3)
+    Z = rng.standard_normal((500, 8)) * np.logspace(0, -4, 8)[None, :]
+    if dependent == "nearly":
+        Z[:, 5] = Z[:, 1] - 2.0 * Z[:, 2]
+    if dependent == "exactly":
+        Z[:, 5] = Z[:, 1]
+    Q, R = _orthonormal_block(Z.copy(), np.random.default_rng(0))
+    np.testing.assert_allclose(Q.T @ Q, np.eye(8), atol=1e-12)
+    np.testing.assert_allclose(Q @ R, Z, atol=1e-12 * np.abs(Z).max())
+    if dependent == "exactly":  # the weak direction: a random vector with no weight in R
+        assert (np.abs(R).max(axis=1) == 0.0).sum() == 1
+    if dependent == "no":
+        assert np.allclose(np.tril(R, -1), 0.0, atol=1e-12 * np.abs(R).max())
+        _, ref = np.linalg.qr(Z)
+        np.testing.assert_allclose(np.abs(R), np.abs(ref), rtol=1e-9, atol=1e-14)
+
+
 def test_block_solver_restarts_and_falls_back(mesh):
     """A basis too small to converge without restarting (thick restarts) still gives the
     exact pairs; a mid shift from a far too high estimate is detected and redone below 0."""
