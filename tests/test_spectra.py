@@ -503,14 +503,26 @@ def test_write_then_mmap_read_back_is_identical(tiny, tmp_path):
     assert not list(tmp_path.glob(".sp.tmp-*"))
 
 
-def test_streamed_compute_equals_in_memory_and_float16_option(mesh, tiny, tmp_path):
+@pytest.mark.parametrize("buffered", [True, False])
+def test_streamed_compute_equals_in_memory_and_float16_option(
+    mesh, tiny, tmp_path, monkeypatch, buffered
+):
+    """A written grid equals the in-memory one whether it was buffered in memory (small
+    grids) or streamed through the scratch file (big ones; forced here)."""
+    from hktex_engine.spectra import grid
+
+    if not buffered:
+        monkeypatch.setattr(grid, "MEMORY_SINK_MAX_BYTES", 0)
     streamed = compute_spectra(mesh, TINY, out_dir=tmp_path / "s")
     np.testing.assert_allclose(np.asarray(streamed.evecs), tiny.evecs, atol=1e-6)
     assert (tmp_path / "s" / "manifest.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s"]
-    half = compute_spectra(mesh, SpectralConfig(**{**TINY.to_dict(), "evecs_dtype": "float16"}))
+    half16 = SpectralConfig(**{**TINY.to_dict(), "evecs_dtype": "float16"})
+    half = compute_spectra(mesh, half16)
     assert half.evecs.dtype == np.float16
     assert np.abs(half.evecs.astype(np.float64) - tiny.evecs).max() < 1e-2
+    written = compute_spectra(mesh, half16, out_dir=tmp_path / "h")
+    np.testing.assert_array_equal(np.asarray(written.evecs), half.evecs)
 
 
 def test_corrupt_or_missing_files_raise_spectra_error(tiny, tmp_path):

@@ -124,17 +124,57 @@ def _work_size(config: SpectralConfig, n: int) -> int:
     return min(config.k + p, n - 2)
 
 
+#: A written grid is buffered in memory, not streamed through a scratch file, when its float32
+#: buffer is at most this large (n x nodes x K x 4 bytes: ~10,000 vertices at K = 128).
+#: Measured on blub (7,106 vertices, 178 MB, two fits on the other core): the scratch file's
+#: writes took the parent 0.78 s during the solves and its transposing finalize 0.86 s after
+#: them; the buffer 0.31 s and its write 0.29 s, both fsynced. Bigger grids keep streaming so
+#: memory stays bounded.
+MEMORY_SINK_MAX_BYTES = 256 << 20
+
+
+def _write_vertex_major(path: Path, dtype: np.dtype, shape: tuple, chunks) -> None:
+    """An .npy file of ``shape`` from vertex chunks (each already in ``dtype``), fsynced."""
+    with open(path, "wb") as f:
+        header = {"descr": dtype.str, "fortran_order": False, "shape": shape}
+        np.lib.format.write_array_header_1_0(f, header)
+        for chunk in chunks:
+            f.write(np.ascontiguousarray(chunk).tobytes())
+        f.flush()
+        os.fsync(f.fileno())
+
+
 class _MemorySink:
-    """Keeps every node's aligned eigenvectors in one vertex-major array (small meshes)."""
+    """Keeps every node's aligned eigenvectors in one vertex-major float32 buffer.
+
+    float32, whatever the storage dtype: a node copied to another (theta = pi) is realigned
+    from it, and must not be rounded to float16 twice (the file sink's scratch is float32
+    for the same reason). ``array`` is the result in the storage dtype; ``finalize`` writes
+    it in bounded vertex chunks.
+    """
 
     def __init__(self, n: int, nodes: int, k: int, dtype: str) -> None:
-        self.array = np.empty((n, nodes, k), dtype=dtype)
+        self.dtype = np.dtype(dtype)
+        self.buffer = np.empty((n, nodes, k), dtype=np.float32)
 
     def put(self, g: int, block: np.ndarray) -> None:
-        self.array[:, g, :] = block
+        self.buffer[:, g, :] = block
 
     def get(self, g: int) -> np.ndarray:
-        return np.asarray(self.array[:, g, :], dtype=np.float64)
+        return np.asarray(self.buffer[:, g, :], dtype=np.float64)
+
+    @property
+    def array(self) -> np.ndarray:
+        return self.buffer if self.dtype == np.float32 else self.buffer.astype(self.dtype)
+
+    def finalize(self, path: Path, chunk_bytes: int = 64 << 20) -> None:
+        n, nodes, k = self.buffer.shape
+        rows = max(1, chunk_bytes // (nodes * k * 4))
+        chunks = (self.buffer[v0 : v0 + rows].astype(self.dtype) for v0 in range(0, n, rows))
+        _write_vertex_major(path, self.dtype, self.buffer.shape, chunks)
+
+    def close(self) -> None:
+        self.buffer = np.empty((0, 0, 0), dtype=np.float32)
 
 
 class _FileSink:
@@ -162,21 +202,18 @@ class _FileSink:
 
     def finalize(self, path: Path, chunk_bytes: int = 64 << 20) -> None:
         rows = max(1, chunk_bytes // (self.nodes * self.k * 4))
-        with open(path, "wb") as f:
-            header = {"descr": self.dtype.str, "fortran_order": False}
-            header["shape"] = (self.n, self.nodes, self.k)
-            np.lib.format.write_array_header_1_0(f, header)
-            for v0 in range(0, self.n, rows):
-                v1 = min(self.n, v0 + rows)
-                buf = np.empty((v1 - v0, self.nodes, self.k), dtype=self.dtype)
-                for g in range(self.nodes):
-                    off = g * self._block + v0 * self.k * 4
-                    raw = os.pread(self._fd, (v1 - v0) * self.k * 4, off)
-                    buf[:, g, :] = np.frombuffer(raw, dtype=np.float32).reshape(v1 - v0, self.k)
-                f.write(buf.tobytes())
-            f.flush()
-            os.fsync(f.fileno())
+        _write_vertex_major(path, self.dtype, (self.n, self.nodes, self.k), self._chunks(rows))
         self.close()
+
+    def _chunks(self, rows: int):
+        for v0 in range(0, self.n, rows):
+            v1 = min(self.n, v0 + rows)
+            buf = np.empty((v1 - v0, self.nodes, self.k), dtype=self.dtype)
+            for g in range(self.nodes):
+                off = g * self._block + v0 * self.k * 4
+                raw = os.pread(self._fd, (v1 - v0) * self.k * 4, off)
+                buf[:, g, :] = np.frombuffer(raw, dtype=np.float32).reshape(v1 - v0, self.k)
+            yield buf
 
     def close(self) -> None:
         if self._fd >= 0:
@@ -339,6 +376,7 @@ def compute_spectra(
         out_dir = Path(out_dir)
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp-", dir=out_dir.parent))
+    if staging is not None and n * G * K * 4 > MEMORY_SINK_MAX_BYTES:
         sink = _FileSink(staging, n, G, K, config.evecs_dtype)
     else:
         sink = _MemorySink(n, G, K, config.evecs_dtype)
@@ -451,7 +489,7 @@ def compute_spectra(
             grid_theta=thetas,
             grid_eta=etas,
             evals=evals,
-            evecs=sink.array if isinstance(sink, _MemorySink) else np.empty((0, G, K)),
+            evecs=sink.array if staging is None else np.empty((0, G, K)),
             iso_evals=iso_vals_k,
             iso_evecs=iso_vecs_k,
             face_frames=frames,
@@ -475,8 +513,7 @@ def compute_spectra(
     finally:
         if cold_iter is not None:
             cold_iter.close()
-        if isinstance(sink, _FileSink):
-            sink.close()
+        sink.close()
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
 
