@@ -58,8 +58,14 @@ def test_budget_picks_the_narrowest_step_within_it(fitted):
     q, nbytes = quant.roundtrip(res.kernelset, strict["bits"])
     assert nbytes == strict["bytes"]
     np.testing.assert_array_equal(q.colors, strict["kernelset"].colors)
-    # the wider codes are closer to the exact set (its own PSNR on the same points)
-    assert strict["psnr"] >= strict["tried"][0]["psnr"] - 1e-6
+    # the wider codes are closer to the exact set: its albedo, not the texture (against the
+    # texture a coarser file can score a hair higher by chance: 17.87811 against 17.87806 dB
+    # once the spectra moved by their solver tolerance, 2026-12-03)
+    exact = AlbedoQuery(spectra, res.kernelset, device="cpu").colors(f, b)
+    default_q, _ = quant.roundtrip(res.kernelset, QUANT_BITS)
+    wide_err = np.abs(AlbedoQuery(spectra, q, device="cpu").colors(f, b) - exact).max()
+    default_err = np.abs(AlbedoQuery(spectra, default_q, device="cpu").colors(f, b) - exact).max()
+    assert wide_err < default_err
 
 
 def test_fit_metrics_report_the_chosen_file(fitted):
