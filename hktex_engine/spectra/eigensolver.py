@@ -441,7 +441,7 @@ def eigs_block(
     it = 0
     converged = False
     fresh = 0  # blocks added since the (re)start
-    restarts = 0
+    restarted = False
     nu = C = None
     while True:
         it += 1
@@ -465,7 +465,7 @@ def eigs_block(
         Znew, R = _orthonormal_block(Z, rng)
         done = d  # columns whose S-image is in the basis: T[:done, :done] is complete
         full = d + b > dmax
-        early = restarts == 0 and done < check_from  # a restarted basis holds its pairs
+        early = not restarted and done < check_from  # a restarted basis holds its pairs
         if not full and (early or (done - check_from) % check_every):
             Q[:, d : d + b] = Znew
             T[d : d + b, cur : cur + b] = R
@@ -501,7 +501,7 @@ def eigs_block(
         T[:keep, keep : keep + b] = coupling.T
         cur, d = keep, keep + b
         fresh = 0
-        restarts += 1
+        restarted = True
     Y = Q[:, :done] @ C[:, :k]
     if converged and full_every > 1:
         # lost orthogonality shows as ghost copies of converged pairs (small residuals, a

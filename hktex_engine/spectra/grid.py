@@ -139,7 +139,7 @@ def _write_vertex_major(path: Path, dtype: np.dtype, shape: tuple, chunks) -> No
         header = {"descr": dtype.str, "fortran_order": False, "shape": shape}
         np.lib.format.write_array_header_1_0(f, header)
         for chunk in chunks:
-            f.write(np.ascontiguousarray(chunk).tobytes())
+            f.write(memoryview(np.ascontiguousarray(chunk)))  # no bytes copy of the chunk
         f.flush()
         os.fsync(f.fileno())
 
