@@ -338,7 +338,15 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--meshes", nargs="+", default=["spot"], choices=sorted(MESHES))
+    ap.add_argument("--meshes", nargs="*", default=None, choices=sorted(MESHES))
+    ap.add_argument(
+        "--mesh-file",
+        action="append",
+        default=[],
+        metavar="NAME=MESH[,TEXTURE]",
+        help="a mesh outside the shared data (e.g. benchmarks/textured_torus.py's), fitted "
+        "like the named ones; repeatable",
+    )
     ap.add_argument("--run", action="append", default=[], help="PRESET[+polish][:JSON]")
     ap.add_argument("--angles", type=int, default=7)
     ap.add_argument(
@@ -379,9 +387,20 @@ def main() -> int:
         return 0
     torch.manual_seed(0)
     cache = SpectraCache(args.cache)
-    for name in args.meshes:
-        obj, tex = MESHES[name]
-        mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+    sources = {
+        name: (DATA / obj, DATA / tex if tex else None) for name, (obj, tex) in MESHES.items()
+    }
+    names = list(args.meshes or ([] if args.mesh_file else ["spot"]))
+    for spec in args.mesh_file:
+        name, _, files = spec.partition("=")
+        obj, _, tex = files.partition(",")
+        if not name or not obj:
+            ap.error(f"--mesh-file wants NAME=MESH[,TEXTURE], got {spec!r}")
+        sources[name] = (Path(obj), Path(tex) if tex else None)
+        names.append(name)
+    for name in names:
+        obj, tex = sources[name]
+        mesh = load_mesh(obj, texture=tex)
         eval_f, eval_b, target = surface_samples(mesh, 60_000, 0)
         curve = vertex_colour_curve(mesh, eval_f, eval_b, target)
         print(name, "vertex colours", curve, flush=True)
