@@ -67,6 +67,26 @@ MESHES = {
 }
 
 
+def mesh_sources(mesh_files: list[str]) -> dict[str, tuple[Path, Path | None]]:
+    """The shared meshes by name, plus each ``NAME=MESH[,TEXTURE]`` of ``--mesh-file``."""
+    sources = {
+        name: (DATA / obj, DATA / tex if tex else None) for name, (obj, tex) in MESHES.items()
+    }
+    for spec in mesh_files:
+        name, _, files = spec.partition("=")
+        obj, _, tex = files.partition(",")
+        if not name or not obj:
+            raise SystemExit(f"--mesh-file wants NAME=MESH[,TEXTURE], got {spec!r}")
+        sources[name] = (Path(obj), Path(tex) if tex else None)
+    return sources
+
+
+def load_source(source: tuple[Path, Path | None]):
+    """A mesh of :func:`mesh_sources`, textured."""
+    obj, tex = source
+    return load_mesh(obj, texture=tex)
+
+
 def parse_run(spec: str) -> tuple[str, dict]:
     """``PRESET[+polish][:JSON]`` -> (label, FitParams overrides incl. ``preset``)."""
     head, _, js = spec.partition(":")
@@ -387,20 +407,11 @@ def main() -> int:
         return 0
     torch.manual_seed(0)
     cache = SpectraCache(args.cache)
-    sources = {
-        name: (DATA / obj, DATA / tex if tex else None) for name, (obj, tex) in MESHES.items()
-    }
     names = list(args.meshes or ([] if args.mesh_file else ["spot"]))
-    for spec in args.mesh_file:
-        name, _, files = spec.partition("=")
-        obj, _, tex = files.partition(",")
-        if not name or not obj:
-            ap.error(f"--mesh-file wants NAME=MESH[,TEXTURE], got {spec!r}")
-        sources[name] = (Path(obj), Path(tex) if tex else None)
-        names.append(name)
+    sources = mesh_sources(args.mesh_file)
+    names += [name for name in sources if name not in MESHES]
     for name in names:
-        obj, tex = sources[name]
-        mesh = load_mesh(obj, texture=tex)
+        mesh = load_source(sources[name])
         eval_f, eval_b, target = surface_samples(mesh, 60_000, 0)
         curve = vertex_colour_curve(mesh, eval_f, eval_b, target)
         print(name, "vertex colours", curve, flush=True)

@@ -22,13 +22,20 @@ import time
 from pathlib import Path
 
 from _machine import machine_info, machine_line
-from fidelity import DATA, MESHES, RESULTS, at_equal_bytes, read_rows, refined_mesh
+from fidelity import (
+    MESHES,
+    RESULTS,
+    at_equal_bytes,
+    load_source,
+    mesh_sources,
+    read_rows,
+    refined_mesh,
+)
 
 from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.baselines import VertexColorBaseline, subdivided_location
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.evaluation.paper_views import PaperViews, kernelset_albedo_fn
-from hktex_engine.geometry.mesh import load_mesh
 from hktex_engine.kernels.hkt import QUANTISED_VERSION, hkt_bytes, load_hkt
 from hktex_engine.spectra.grid import SpectraCache
 
@@ -157,7 +164,14 @@ def write_table(jsonl: Path, md: Path) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--mesh", required=True, choices=sorted(MESHES))
+    ap.add_argument("--mesh", required=True, help=f"one of {sorted(MESHES)} or a --mesh-file name")
+    ap.add_argument(
+        "--mesh-file",
+        action="append",
+        default=[],
+        metavar="NAME=MESH[,TEXTURE]",
+        help="a mesh outside the shared data, as in fidelity.py",
+    )
     ap.add_argument("--hkt", type=Path, nargs="+", required=True)
     ap.add_argument(
         "--k", type=int, default=SpectralConfig().k, help="spectra K the sets were fitted on"
@@ -182,8 +196,10 @@ def main() -> int:
     command = "python benchmarks/fidelity_views.py " + " ".join(
         shlex.quote(a) for a in sys.argv[1:]
     )
-    obj, tex = MESHES[args.mesh]
-    mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+    sources = mesh_sources(args.mesh_file)
+    if args.mesh not in sources:
+        ap.error(f"unknown mesh {args.mesh!r}: one of {sorted(sources)}")
+    mesh = load_source(sources[args.mesh])
     views = PaperViews(mesh)
     twice = max(2 * hkt_bytes(load_hkt(p), quantised=True)["zip"] for p in args.hkt)
     curve = vc_view_curve(mesh, views, cover_bytes=twice)
