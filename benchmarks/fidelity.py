@@ -381,6 +381,13 @@ def main() -> int:
         default=0,
         help="fit on the mesh midpoint-subdivided this many times (same surface and points)",
     )
+    ap.add_argument(
+        "--tangent-field",
+        choices=("axis_smoothed", "curvature"),
+        default=SpectralConfig().tangent_field,
+        help="the spectra's reference direction (ALGORITHM.md 1; the later configuration's is "
+        "curvature); rows on another than the default are labelled @FIELD",
+    )
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--table", action="store_true", help="only rewrite fidelity.md")
     ap.add_argument(
@@ -422,8 +429,12 @@ def main() -> int:
             label, over = parse_run(spec)
             if args.subdivide:
                 label = f"{label} @mid{args.subdivide}"
+            field = args.tangent_field
+            if field != SpectralConfig().tangent_field:
+                label = f"{label} @{field}"
             k = int(over.pop("spectra_k", args.k))
-            spectra = cache.get_or_compute(mesh, SpectralConfig(angles=args.angles, k=k))
+            config = SpectralConfig(angles=args.angles, k=k, tangent_field=field)
+            spectra = cache.get_or_compute(mesh, config)
             row = run_one(
                 name,
                 mesh,
@@ -441,6 +452,7 @@ def main() -> int:
             row["machine"] = machine_line(machine_info())
             if args.subdivide:
                 row["subdivide"] = args.subdivide
+            row["tangent_field"] = field
             with jsonl.open("a") as fh:
                 fh.write(json.dumps(row) + "\n")
             print(

@@ -68,7 +68,15 @@ def curve_at(curve: list[dict], key: str, nbytes: float) -> dict:
 
 
 def score_set(
-    name, mesh, views, curve, path: Path, cache: SpectraCache, k: int, subdivide: int = 0
+    name,
+    mesh,
+    views,
+    curve,
+    path: Path,
+    cache: SpectraCache,
+    k: int,
+    subdivide: int = 0,
+    tangent_field: str = SpectralConfig().tangent_field,
 ) -> dict:
     """One saved set on the paper views; ``subdivide``: it was fitted on the mesh
     midpoint-subdivided that many times (``fidelity.py --subdivide``), so every point the
@@ -76,7 +84,8 @@ def score_set(
     ks = load_hkt(path)
     ef, eb, target = surface_samples(mesh, 60_000, 0)
     fit_mesh = refined_mesh(mesh, subdivide) if subdivide else mesh
-    spectra = cache.get_or_compute(fit_mesh, SpectralConfig(angles=7, k=k))
+    config = SpectralConfig(angles=7, k=k, tangent_field=tangent_field)
+    spectra = cache.get_or_compute(fit_mesh, config)
     on_fit_mesh = kernelset_albedo_fn(spectra, ks)
 
     def on_refined(face_ids, bary):
@@ -92,6 +101,7 @@ def score_set(
         "mesh": name,
         "subdivide": subdivide,
         "spectra_k": k,
+        "tangent_field": tangent_field,
         "hkt": str(path),
         "kernels": len(ks),
         "surface_psnr": surface,
@@ -120,11 +130,15 @@ def rebyte(jsonl: Path) -> None:
 
 
 def mid(row: dict) -> str:
-    """The table's mark of a set fitted on a subdivided mesh, or on spectra of K other than
-    64 (the rows before 2026-12-03 noon, which carry no K, were all fitted on 64)."""
+    """The table's mark of a set fitted on a subdivided mesh, on spectra of K other than 64
+    (the rows before 2026-12-03 noon, which carry no K, were all fitted on 64) or on another
+    reference field than the default."""
     k = row.get("spectra_k", 64)
-    return (f" @mid{row['subdivide']}" if row.get("subdivide") else "") + (
-        f" K={k}" if k != 64 else ""
+    field = row.get("tangent_field", "axis_smoothed")
+    return (
+        (f" @mid{row['subdivide']}" if row.get("subdivide") else "")
+        + (f" K={k}" if k != 64 else "")
+        + (f" @{field}" if field != "axis_smoothed" else "")
     )
 
 
@@ -179,6 +193,12 @@ def main() -> int:
     ap.add_argument(
         "--subdivide", type=int, default=0, help="the sets were fitted with fidelity.py --subdivide"
     )
+    ap.add_argument(
+        "--tangent-field",
+        choices=("axis_smoothed", "curvature"),
+        default=SpectralConfig().tangent_field,
+        help="the spectra's reference direction the sets were fitted on",
+    )
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "hktex" / "spectra")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument(
@@ -206,7 +226,9 @@ def main() -> int:
     print(args.mesh, "vertex colours (paper views)", curve, flush=True)
     cache = SpectraCache(args.cache)
     for path in args.hkt:
-        row = score_set(args.mesh, mesh, views, curve, path, cache, args.k, args.subdivide)
+        row = score_set(
+            args.mesh, mesh, views, curve, path, cache, args.k, args.subdivide, args.tangent_field
+        )
         row["trace_s"] = views.trace_seconds
         row["command"] = command
         row["machine"] = machine_line(machine_info())
