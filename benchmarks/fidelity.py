@@ -416,7 +416,7 @@ def main() -> int:
     cache = SpectraCache(args.cache)
     names = list(args.meshes or ([] if args.mesh_file else ["spot"]))
     sources = mesh_sources(args.mesh_file)
-    names += [name for name in sources if name not in MESHES]
+    names += [n for n in (spec.partition("=")[0] for spec in args.mesh_file) if n not in names]
     for name in names:
         mesh = load_source(sources[name])
         eval_f, eval_b, target = surface_samples(mesh, 60_000, 0)
