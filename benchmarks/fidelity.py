@@ -6,8 +6,10 @@
 Each ``--run`` is ``PRESET[+polish][:JSON overrides of FitParams]`` (``spectra_k`` in the JSON
 picks the spectra's K for that run; ``kernel``, an object, overrides KernelConfig fields such
 as ``diffusion_time``). ``--subdivide N`` fits on the mesh midpoint-subdivided N
-times (the same surface; rows labelled ``@midN``), scored on the same points. Per mesh and
-run: a UV fit, then
+times (the same surface; rows labelled ``@midN``), scored on the same points;
+``--tangent-field curvature`` on spectra of the curvature reference field (``@curvature``);
+``--mesh-file NAME=MESH[,TEXTURE]`` fits a mesh outside the shared data (e.g. the torus of
+``textured_torus.py``). Per mesh and run: a UV fit, then
 
 - surface PSNR (EVALUATION.md: 60,000 points, seed 0) and the kernel set's zipped bytes;
 - vertex colours **of equal bytes**: PSNR of the L0-L3 baselines interpolated linearly in
