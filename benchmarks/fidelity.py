@@ -83,6 +83,24 @@ def mesh_sources(mesh_files: list[str]) -> dict[str, tuple[Path, Path | None]]:
     return sources
 
 
+def add_mesh_file_argument(ap: argparse.ArgumentParser) -> None:
+    """``--mesh-file NAME=MESH[,TEXTURE]``, the same in every fidelity script."""
+    ap.add_argument(
+        "--mesh-file",
+        action="append",
+        default=[],
+        metavar="NAME=MESH[,TEXTURE]",
+        help="a mesh outside the shared data (e.g. benchmarks/textured_torus.py's), used like "
+        "the named ones; repeatable",
+    )
+
+
+def mesh_file_names(mesh_files: list[str], names: list[str]) -> list[str]:
+    """``names`` followed by the ``--mesh-file`` names not already among them."""
+    extra = [spec.partition("=")[0] for spec in mesh_files]
+    return list(names) + [n for n in dict.fromkeys(extra) if n not in names]
+
+
 def load_source(source: tuple[Path, Path | None]):
     """A mesh of :func:`mesh_sources`, textured."""
     obj, tex = source
@@ -361,14 +379,7 @@ def write_table(jsonl: Path, md: Path, command: str) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--meshes", nargs="*", default=None, choices=sorted(MESHES))
-    ap.add_argument(
-        "--mesh-file",
-        action="append",
-        default=[],
-        metavar="NAME=MESH[,TEXTURE]",
-        help="a mesh outside the shared data (e.g. benchmarks/textured_torus.py's), fitted "
-        "like the named ones; repeatable",
-    )
+    add_mesh_file_argument(ap)
     ap.add_argument("--run", action="append", default=[], help="PRESET[+polish][:JSON]")
     ap.add_argument("--angles", type=int, default=7)
     ap.add_argument(
@@ -416,9 +427,8 @@ def main() -> int:
         return 0
     torch.manual_seed(0)
     cache = SpectraCache(args.cache)
-    names = list(args.meshes or ([] if args.mesh_file else ["spot"]))
+    names = mesh_file_names(args.mesh_file, args.meshes or ([] if args.mesh_file else ["spot"]))
     sources = mesh_sources(args.mesh_file)
-    names += [n for n in (spec.partition("=")[0] for spec in args.mesh_file) if n not in names]
     for name in names:
         mesh = load_source(sources[name])
         eval_f, eval_b, target = surface_samples(mesh, 60_000, 0)

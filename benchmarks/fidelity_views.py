@@ -25,6 +25,7 @@ from _machine import machine_info, machine_line
 from fidelity import (
     MESHES,
     RESULTS,
+    add_mesh_file_argument,
     at_equal_bytes,
     load_source,
     mesh_sources,
@@ -179,13 +180,7 @@ def write_table(jsonl: Path, md: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--mesh", required=True, help=f"one of {sorted(MESHES)} or a --mesh-file name")
-    ap.add_argument(
-        "--mesh-file",
-        action="append",
-        default=[],
-        metavar="NAME=MESH[,TEXTURE]",
-        help="a mesh outside the shared data, as in fidelity.py",
-    )
+    add_mesh_file_argument(ap)
     ap.add_argument("--hkt", type=Path, nargs="+", required=True)
     ap.add_argument(
         "--k", type=int, default=SpectralConfig().k, help="spectra K the sets were fitted on"

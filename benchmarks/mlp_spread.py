@@ -21,16 +21,22 @@ from pathlib import Path
 
 import numpy as np
 from _machine import machine_info, machine_line
-from fidelity import DATA, MESHES, RESULTS, read_rows
+from fidelity import (
+    MESHES,
+    RESULTS,
+    add_mesh_file_argument,
+    load_source,
+    mesh_file_names,
+    mesh_sources,
+    read_rows,
+)
 
 from hktex_engine.evaluation.baselines import MLPBaseline
 from hktex_engine.evaluation.metrics import psnr, surface_samples
-from hktex_engine.geometry.mesh import load_mesh
 
 
-def spread(name: str, seeds: list[int], steps: int, batch: int) -> dict:
-    obj, tex = MESHES[name]
-    mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+def spread(name: str, source: tuple, seeds: list[int], steps: int, batch: int) -> dict:
+    mesh = load_source(source)
     f, b, target = surface_samples(mesh, 60_000, 0)
     scores, seconds = [], []
     for seed in seeds:
@@ -78,7 +84,8 @@ def write_table(jsonl: Path, md: Path) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--meshes", nargs="+", required=True, choices=sorted(MESHES))
+    ap.add_argument("--meshes", nargs="*", default=[], choices=sorted(MESHES))
+    add_mesh_file_argument(ap)
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--steps", type=int, default=5000, help="the fit's steps (default preset)")
     ap.add_argument("--batch", type=int, default=4096, help="the fit's points per step")
@@ -86,8 +93,12 @@ def main() -> int:
     args = ap.parse_args()
     command = "python benchmarks/mlp_spread.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     jsonl, md = args.out / "mlp_spread.jsonl", args.out / "mlp_spread.md"
-    for name in args.meshes:
-        row = spread(name, args.seeds, args.steps, args.batch)
+    sources = mesh_sources(args.mesh_file)
+    names = mesh_file_names(args.mesh_file, args.meshes)
+    if not names:
+        ap.error("name --meshes or --mesh-file")
+    for name in names:
+        row = spread(name, sources[name], args.seeds, args.steps, args.batch)
         row["command"] = command
         row["machine"] = machine_line(machine_info())
         with jsonl.open("a") as fh:
