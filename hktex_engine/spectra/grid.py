@@ -170,7 +170,10 @@ class _MemorySink:
     def finalize(self, path: Path, chunk_bytes: int = 64 << 20) -> None:
         n, nodes, k = self.buffer.shape
         rows = max(1, chunk_bytes // (nodes * k * 4))
-        chunks = (self.buffer[v0 : v0 + rows].astype(self.dtype) for v0 in range(0, n, rows))
+        # float32 storage writes the buffer's own rows; float16 converts one chunk at a time
+        chunks = (
+            self.buffer[v0 : v0 + rows].astype(self.dtype, copy=False) for v0 in range(0, n, rows)
+        )
         _write_vertex_major(path, self.dtype, self.buffer.shape, chunks)
 
     def close(self) -> None:
