@@ -77,15 +77,29 @@ class SpectralConfig:
 
 @dataclass(frozen=True)
 class KernelConfig:
-    """Constants of kernel evaluation (ALGORITHM.md section 4-5), stored in every .hkt."""
+    """Constants of kernel evaluation (ALGORITHM.md section 4-5), stored in every .hkt.
+
+    ``blend`` picks the colour rule: ``"paper"`` is ALGORITHM.md §5's normalised average;
+    ``"layered"`` (our extension, ``kernels.blending``) gives each kernel a learnable
+    priority, so a small kernel can win over the large ones under it.
+    """
 
     diffusion_time: float = 8.133e-4
     sigma_b: float = 0.05
     k_search: int = 100
     k_blend: int = 10
+    blend: Literal["paper", "layered"] = "paper"
+
+    def __post_init__(self) -> None:
+        if self.blend not in BLENDS:
+            raise ValueError(f"blend must be one of {BLENDS}, not {self.blend!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+#: The colour rules a kernel set may use (``KernelConfig.blend``).
+BLENDS = ("paper", "layered")
 
 
 @dataclass(frozen=True)
@@ -156,6 +170,7 @@ class FitParams:
     lr_sharpness: float = 0.0055
     lr_base: float = 0.001
     lr_centers: float = 0.099
+    lr_priority: float = 0.02
     center_momentum: float = 0.0
     lr_decay_every: int = 1000
     lr_decay: float = 0.5
@@ -283,8 +298,12 @@ def fit_preset(name: str, **overrides) -> FitParams:
 
 def fit_params_from(values: dict) -> FitParams:
     """FitParams from a flat mapping (CLI flags, the API's ``params``): ``preset`` picks the
-    base (default ``DEFAULT_PRESET``), every other known, non-None field overrides it."""
+    base (default ``DEFAULT_PRESET``), every other known, non-None field overrides it
+    (``blend``: the kernel config's colour rule)."""
     given = {
         k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
     }
-    return fit_preset(values.get("preset") or DEFAULT_PRESET, **given)
+    params = fit_preset(values.get("preset") or DEFAULT_PRESET, **given)
+    if values.get("blend") is not None:  # a KernelConfig field, flat in flags and the API
+        params = replace(params, kernel=replace(params.kernel, blend=values["blend"]))
+    return params

@@ -101,12 +101,17 @@ class ToyModel(torch.nn.Module):
         c = colors if colors is not None else 0.2 * torch.randn(n, 3, generator=g, dtype=dt)
         self.colors = torch.nn.Parameter(torch.as_tensor(c, dtype=dt))
         self.base_color = torch.nn.Parameter(torch.full((3,), 0.5, dtype=dt))
+        # the paper's blend: a priority row that follows the kernels and gets no gradient
+        self.priority = torch.nn.Parameter(torch.zeros(n, dtype=dt), requires_grad=False)
         self.k_blend = k_blend
         self.sigma = sigma
         self.refreshes = 0
 
     def _rows(self):
-        return [self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors]
+        return [
+            self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
+            self.priority,
+        ]  # fmt: skip
 
     def centres(self) -> torch.Tensor:
         return (self.V[self.F[self.face_ids]] * self.bary[:, :, None]).sum(1)
@@ -151,9 +156,19 @@ class ToyModel(torch.nn.Module):
         return self
 
     @torch.no_grad()
-    def append(self, face_ids, bary, theta, eta, threshold, sharpness, colors):
+    def append(self, face_ids, bary, theta, eta, threshold, sharpness, colors, priority=None):
         self.face_ids = torch.cat([self.face_ids, torch.as_tensor(face_ids, dtype=torch.long)])
-        new = [bary, theta, torch.log1p(torch.as_tensor(eta)), threshold, sharpness, colors]
+        if priority is None:
+            priority = torch.zeros(len(face_ids), dtype=torch.float64)
+        new = [
+            bary,
+            theta,
+            torch.log1p(torch.as_tensor(eta)),
+            threshold,
+            sharpness,
+            colors,
+            priority,
+        ]
         for p, rows in zip(self._rows(), new, strict=True):
             p.data = torch.cat([p.data, torch.as_tensor(rows, dtype=torch.float64)])
             p.grad = None

@@ -7,12 +7,14 @@ saturated-tie cases run through it in tests/test_ties.py."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 
 from hktex_engine.config import KernelConfig
-from hktex_engine.kernels import compiled, fused_pairs, fused_rank, fused_terms
+from hktex_engine.kernels import blending, compiled, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.model import _exhaustive_cut, soft_step
 from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import tiny_spectra
@@ -146,23 +148,32 @@ def test_embedding_against_autograd(field32, spectra3):
     np.testing.assert_allclose(b32.grad.numpy(), b_ref.grad.numpy(), rtol=1e-5, atol=1e-6)
 
 
-def _pair_reference(top, dots, blend, emb_y, sigma_b, coef, norm, w, emb_c, thr, sharp, col, base):
+def _pair_reference(top, dots, blend, emb_y, sigma_b, coef, norm, w, emb_c, thr, sharp, col, base, prio=None):  # fmt: skip
     """ALGORITHM.md 4-5 for chosen pairs, in plain torch float64 (autograd does backward).
     ``h`` takes its value from ``dots`` and its coef-gradient from ``blend`` (dh/dcoef), as
-    the saved ranking quantities define it."""
+    the saved ranking quantities define it. ``prio``: the layered blend, written out here
+    without the max shift (it cancels)."""
     via_coef = (coef[top] * blend).sum(dim=2)
     h = (w[top] * dots).sum(dim=2) + via_coef - via_coef.detach()
     d2 = ((emb_y[:, None, :] - emb_c[top]) ** 2).sum(dim=2)
     r = h * torch.exp(-d2 / (2 * sigma_b**2)) / norm[top]
     rho = soft_step(r, thr[top], sharp[top])
+    if prio is not None:
+        omega = rho * torch.exp(prio[top])
+        cover = torch.clamp(rho.sum(dim=1, keepdim=True), max=1.0)
+        mass = omega.sum(dim=1, keepdim=True)
+        mix = torch.einsum("pc,pcd->pd", omega, col[top]) * cover / torch.where(mass > 0, mass, 1)
+        return torch.clamp(base + mix, 0.0, 1.0), rho
     den = torch.clamp(rho.sum(dim=1, keepdim=True), min=1.0)
     out = torch.clamp(base + torch.einsum("pc,pcd->pd", rho, col[top]) / den, 0.0, 1.0)
     return out, rho
 
 
-def test_pair_blend_against_autograd():
+@pytest.mark.parametrize("layered", [False, True])
+def test_pair_blend_against_autograd(layered):
     """Random pairs with every regime present: rho saturated at 1, at 0, in between; sums of
-    rho above and below 1; albedo clamped at both ends."""
+    rho above and below 1; albedo clamped at both ends. The compiled footprints, then the
+    torch blend (either rule), against plain float64 autograd."""
     g = torch.Generator().manual_seed(7)
     n_k, p, k_c, kk, dim = 40, 300, 6, 12, 5
     top = torch.stack([torch.randperm(n_k, generator=g)[:k_c] for _ in range(p)])
@@ -178,6 +189,8 @@ def test_pair_blend_against_autograd():
         "col": torch.rand((n_k, 3), generator=g) * 2 - 1,
         "base": torch.tensor([0.2, 0.5, 0.9]),
     }
+    if layered:
+        params["prio"] = torch.rand(n_k, generator=g) * 6 - 3
     emb_y = torch.randn((p, dim), generator=g) * 0.2
     sigma_b = 0.3
     ref_in = {n: v.double().requires_grad_(True) for n, v in params.items()}
@@ -185,6 +198,7 @@ def test_pair_blend_against_autograd():
     out_r, rho_r = _pair_reference(
         top, dots.double(), blend.double(), emb_y.double(), sigma_b, coef64, ref_in["norm"],
         ref_in["w"], ref_in["emb_c"], ref_in["thr"], ref_in["sharp"], ref_in["col"], ref_in["base"],
+        ref_in.get("prio"),
     )  # fmt: skip
     rho_np = rho_r.detach().numpy()
     assert (rho_np == 1).any() and (rho_np == 0).any() and ((rho_np > 0) & (rho_np < 1)).any()
@@ -193,12 +207,14 @@ def test_pair_blend_against_autograd():
     assert ((out_r == 0) | (out_r == 1)).any() and ((out_r > 0) & (out_r < 1)).any()
     got_in = {n: v.clone().requires_grad_(True) for n, v in params.items()}
     coef32 = coef.clone().requires_grad_(True)
-    out, rho = fused_pairs.PairBlend.apply(
+    rho = fused_pairs.PairResponse.apply(
         top, dots, blend, emb_y, sigma_b, coef32, got_in["norm"], got_in["w"], got_in["emb_c"],
-        got_in["thr"], got_in["sharp"], got_in["col"], got_in["base"],
+        got_in["thr"], got_in["sharp"],
     )  # fmt: skip
+    prio = got_in["prio"][top] if layered else None
+    out = blending.albedo(rho, got_in["col"][top], got_in["base"], prio)
     np.testing.assert_allclose(out.detach().numpy(), out_r.detach().numpy(), atol=1e-5)
-    np.testing.assert_allclose(rho.numpy(), rho_np, atol=1e-5)  # float32 against float64
+    np.testing.assert_allclose(rho.detach().numpy(), rho_np, atol=1e-5)  # f32 against f64
     g_out = torch.randn((p, 3), generator=g)
     (out * g_out).sum().backward()
     (out_r * g_out.double()).sum().backward()
@@ -213,26 +229,29 @@ def _step_grads(model, f, b, target):
     model.zero_grad()
     out, aux = model.albedo(f, b, return_aux=True)
     ((out - target) ** 2).mean().backward()
-    grads = {n: p.grad.detach().clone() for n, p in model.named_parameters()}
+    grads = {n: p.grad.detach().clone() for n, p in model.named_parameters() if p.requires_grad}
     return out.detach(), aux, grads
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_training_batch_equals_the_torch_path(field32, spectra3, monkeypatch, threads):
+@pytest.mark.parametrize(("threads", "blend"), [(1, "paper"), (2, "paper"), (2, "layered")])
+def test_training_batch_equals_the_torch_path(field32, spectra3, monkeypatch, threads, blend):
     """A differentiable batch through the compiled step against the torch path (ranking by
     node matmul, autograd through the pairs and per-kernel terms)."""
     monkeypatch.setattr(fused_rank, "THREAD_MIN_POINTS", 200)
     monkeypatch.setattr(fused_pairs, "THREAD_MIN_POINTS", 200)
     monkeypatch.setattr(fused_terms, "THREAD_MIN_KERNELS", 100)
     kp = make_params(spectra3, 300, seed=21)
+    config = replace(CONFIG, blend=blend)
+    if blend == "layered":
+        kp["priority"] = np.random.default_rng(4).uniform(-3, 3, 300)
     f, b = _points(spectra3, 900, 6)
     target = torch.rand((900, 3), generator=torch.Generator().manual_seed(3))
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        got = _step_grads(make_model(field32, kp, CONFIG), f, b, target)
+        got = _step_grads(make_model(field32, kp, config), f, b, target)
         monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
-        ref = _step_grads(make_model(field32, kp, CONFIG), f, b, target)
+        ref = _step_grads(make_model(field32, kp, config), f, b, target)
     finally:
         torch.set_num_threads(old)
     np.testing.assert_allclose(got[0].numpy(), ref[0].numpy(), atol=1e-5)

@@ -56,6 +56,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--points-per-step", type=int, default=None, help=f"({d.points_per_step})")
     p.add_argument("--no-densify", action="store_true", help="keep the kernel count fixed")
     p.add_argument(
+        "--blend",
+        choices=("paper", "layered"),
+        default=None,
+        help="colour rule: the paper's average, or layered (a learnable priority per kernel;"
+        " writes .hkt version 5/6, docs/kernels.md)",
+    )
+    p.add_argument(
         "--polish-colors",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -102,6 +109,7 @@ def _params(args: argparse.Namespace) -> FitParams:
             "densify": False if args.no_densify else None,
             "polish_colors": args.polish_colors,
             "sampling": args.sampling,
+            "blend": args.blend,
         }
     )
     if params.kernels < 1 or params.steps < 0 or params.points_per_step < 1:

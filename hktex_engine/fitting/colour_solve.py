@@ -1,7 +1,7 @@
 """Exact colours for fixed footprints: a sparse linear least-squares solve.
 
 For fixed centres and shapes the albedo ``a_0 + Σ_j ρ_j a_j / max(1, Σ_j ρ_j)`` (ALGORITHM.md
-§5) is linear in the base colour and the residual colours, so the colours that best fit the
+§5; the layered blend of ``kernels.blending`` likewise, with priority-weighted shares) is linear in the base colour and the residual colours, so the colours that best fit the
 texture at a set of points solve a sparse least-squares problem: one row per point, one column
 per kernel (plus the base), ``K_c`` non-zeros a row, except where the final clamp to [0, 1]
 is active (handled as an active set, :func:`solve_colours`). Gradient descent approaches that
@@ -25,6 +25,7 @@ from scipy.sparse.linalg import lsqr
 
 from hktex_engine.geometry.mesh import Mesh
 from hktex_engine.geometry.sampling import sample_surface, texture_lookup, uv_at
+from hktex_engine.kernels import blending
 from hktex_engine.kernels.model import HeatKernelModel
 
 #: points per no-grad evaluation chunk while building the design matrix
@@ -43,15 +44,19 @@ TOL = 1e-6
 def blend_weights(
     model: HeatKernelModel, face_ids: np.ndarray, bary: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's final kernels (P, K_c) and their blend weights ``ρ / max(1, Σρ)``."""
+    """Each point's final kernels (P, K_c) and their blend weights (``ρ / max(1, Σρ)`` for
+    the paper's blend, ``kernels.blending.weights`` for either)."""
     dev, dt = model.base_color.device, model.base_color.dtype
     idx_parts, w_parts = [], []
     for start in range(0, len(face_ids), CHUNK):
         f = torch.as_tensor(face_ids[start : start + CHUNK], device=dev)
         b = torch.as_tensor(bary[start : start + CHUNK], device=dev, dtype=dt)
         _, aux = model.albedo(f, b, return_aux=True)
-        rho = aux["rho"].to(torch.float64)
-        w = rho / rho.sum(dim=1, keepdim=True).clamp_min(1.0)
+        rho, kid = aux["rho"].to(torch.float64), aux["indices"]
+        prio = None
+        if model.layered:  # padding ids (rho 0) read any kernel's priority: it cancels
+            prio = model.priority.detach()[kid.clamp(max=len(model) - 1)].to(torch.float64)
+        w = blending.weights(rho, prio)
         idx_parts.append(aux["indices"].cpu().numpy())
         w_parts.append(w.cpu().numpy())
     return np.concatenate(idx_parts), np.concatenate(w_parts)

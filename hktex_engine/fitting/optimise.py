@@ -2,7 +2,8 @@
 
 Two kinds of parameters live on two kinds of spaces:
 
-* attributes (colours, angle, anisotropy, threshold, sharpness, base colour) live in boxes:
+* attributes (colours, angle, anisotropy, threshold, sharpness, base colour, and the layered
+  blend's priority, which the paper's blend gives no gradient) live in boxes:
   Adam, then projection back into each box;
 * centres live on the surface: Riemannian SGD whose step is an exponential-map trace
   (``geodesics.SurfaceTracer.trace``), with momentum parallel-transported along the same path.
@@ -43,6 +44,7 @@ ATTRIBUTE_LRS: dict[str, str] = {
     "threshold": "lr_threshold",
     "sharpness": "lr_sharpness",
     "base_color": "lr_base",
+    "priority": "lr_priority",
 }
 #: every per-kernel tensor of the model (the centre is face_ids + bary), checkpoint order
 KERNEL_ATTRIBUTES: tuple[str, ...] = (
@@ -53,6 +55,7 @@ KERNEL_ATTRIBUTES: tuple[str, ...] = (
     "threshold",
     "sharpness",
     "colors",
+    "priority",
 )
 
 

@@ -201,6 +201,8 @@ def initial_kernelset(
         kernel_config=params.kernel,
         mesh_hash=spectra.mesh_hash,
         config_hash=spectra.config_hash,
+        # every kernel starts on one layer: the layered blend begins as the paper's
+        priority=np.zeros(n) if params.kernel.blend == "layered" else None,
     )
 
 

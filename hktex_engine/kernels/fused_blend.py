@@ -14,7 +14,9 @@ float64 ``exp`` and casts: within an ulp, and 20 % of this loop's time) and libm
 ``exp``/``sigmoid`` in place of torch's, so ``rho`` agrees to float32 round-off, the chosen
 kernels are the same wherever no two ``rho`` are within round-off of each other (saturated
 ties at exactly 0 or 1 included), and colours agree to ~1e-6.
-Only the CPU float32 path uses it; CUDA and other dtypes keep the torch path.
+Only the CPU float32 path uses it; CUDA and other dtypes keep the torch path. The layered
+blend (``kernels.blending``) is the same loop with the chosen kernels' priorities weighting
+their shares (``layered``; ``prio`` holds one priority per kernel).
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ ATTR_WIDTH = 8
 
 def _blend_points(
     rows, bary, kid_t, h_t, d2_t, edge2, count, attrs, base, scale, k_s, k_c,
-    out, out_kid, out_rho, ordered,
+    out, out_kid, out_rho, ordered, prio, layered,
 ):  # fmt: skip
     """Colours ``out[p]`` for points ``p`` at face-table rows ``rows`` (see :func:`blend`),
     and, when ``ordered``, the blended kernels ``out_kid[p]`` with their ``out_rho[p]`` in
@@ -115,10 +117,16 @@ def _blend_points(
             q = _choose(rho, cd2, m, k_c, top)
         else:
             q = _pick(rho, cd2, m, k_c, top, part)
+        top_prio = -np.inf
+        if layered:
+            for t in range(q):
+                v = prio[kid_t[r, pos[top[t]]]]
+                top_prio = v if v > top_prio else top_prio
         acc0 = zero
         acc1 = zero
         acc2 = zero
         total = zero
+        mass = zero
         if ordered:
             for t in range(q, k_c):  # fewer candidates than K_c: padding, as the torch path
                 out_kid[p, t] = n_kernels
@@ -129,14 +137,25 @@ def _blend_points(
             if ordered:
                 out_kid[p, t] = k
                 out_rho[p, t] = rho[i]
-            acc0 += rho[i] * attrs[k, RED]
-            acc1 += rho[i] * attrs[k, RED + 1]
-            acc2 += rho[i] * attrs[k, RED + 2]
+            omega = rho[i]
+            if layered:
+                omega = omega * np.float32(math.exp(prio[k] - top_prio))
+            acc0 += omega * attrs[k, RED]
+            acc1 += omega * attrs[k, RED + 1]
+            acc2 += omega * attrs[k, RED + 2]
             total += rho[i]
-        denom = total if total > one else one
-        out[p, 0] = _unit(base[0] + acc0 / denom)
-        out[p, 1] = _unit(base[1] + acc1 / denom)
-        out[p, 2] = _unit(base[2] + acc2 / denom)
+            mass += omega
+        if layered:  # coverage min(1, sum rho), shares by priority (kernels.blending)
+            cover = total if total < one else one
+            scale_out = cover / mass if mass > zero else zero
+            out[p, 0] = _unit(base[0] + acc0 * scale_out)
+            out[p, 1] = _unit(base[1] + acc1 * scale_out)
+            out[p, 2] = _unit(base[2] + acc2 * scale_out)
+        else:
+            denom = total if total > one else one
+            out[p, 0] = _unit(base[0] + acc0 / denom)
+            out[p, 1] = _unit(base[1] + acc1 / denom)
+            out[p, 2] = _unit(base[2] + acc2 / denom)
 
 
 _COMPILED = None
@@ -165,13 +184,14 @@ def blend(
     k_s: int,
     k_c: int,
     ordered: bool = True,
+    priority: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """``(albedo (P, 3), kernel ids (P, K_c), rho (P, K_c))`` at points ``(face_ids, bary)``
     from face tables ``ft`` (``kernels.tables.FaceTables`` covering their faces), the blended
     kernels in rule order; in threads over chunks of points. ``ordered=False`` returns the
     albedo alone (ids and rho None): the same kernels, chosen by a linear selection and
     summed in candidate order (colours within float32 round-off of the ordered sum), for
-    queries and renders that need no statistics."""
+    queries and renders that need no statistics. ``priority`` (N,): the layered blend's."""
     # gathers and casts in numpy: torch's parallel kernels contend with a renderer's threads
     rows = compiled.array(ft.rows)[face_ids.numpy()]
     # per-kernel ends of the soft step, by soft_step's own torch expressions (same bits)
@@ -185,6 +205,10 @@ def blend(
     attrs[:, :RED] = torch.stack([t.detach().to(torch.float32) for t in per_kernel], dim=1)
     attrs[:, RED : RED + 3] = colors.detach()
     args = [*tables, attrs.numpy(), compiled.array(base_color)]
+    layered = priority is not None
+    prio = np.ascontiguousarray(
+        compiled.array(priority.detach()) if layered else np.zeros(1), dtype=np.float32
+    )
     b = np.ascontiguousarray(compiled.array(bary), dtype=np.float32)
     scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
     n = rows.shape[0]
@@ -196,7 +220,7 @@ def blend(
     kernel = _kernel()
 
     def run(sl: slice) -> None:
-        kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl], ordered)
+        kernel(rows[sl], b[sl], *args, scale, k_s, k_c, out[sl], out_kid[sl], out_rho[sl], ordered, prio, layered)  # fmt: skip
 
     compiled.run_threaded(run, n, THREAD_MIN_POINTS)
     if not ordered:

@@ -1,4 +1,5 @@
-"""The differentiable blend of each point's chosen pairs, compiled, with its analytic backward.
+"""The differentiable footprints of each point's chosen pairs, compiled, with their analytic
+backward.
 
 After the ranking (``kernels.fused_rank``) a training point keeps ``K_c`` kernels; for each
 pair ``(p, j)`` with the saved ``dots_c = coef_j . Phi_p[n_jc]`` and ``blend = sum_c w_jc
@@ -7,13 +8,13 @@ Phi_p[n_jc]``:
     h   = sum_c w_jc dots_c                   d2 = |e_j - e_p|^2
     r   = h exp(-d2 / (2 sigma_B^2)) / norm_j
     rho = S(r; eps_j, k_j) = clamp((sig(k (r - eps)) - sig(-k eps)) / (sig(k (1 - eps)) - sig(-k eps)), 0, 1)
-    out = clamp(a_0 + sum_j rho_j a_j / max(1, sum_j rho_j), 0, 1)
 
-and backward by the chain rule through each line, with ``dh/dcoef_j = blend`` and
-``dh/dw_jc = dots_c``; clamps pass the gradient where torch's do (inside, ends included).
-Gradients reach the per-kernel rows (coef, norm, weights, centre embedding, threshold,
-sharpness, colour) and ``a_0``; the point side is constant (batches whose query barycentrics
-need a gradient take the torch path).
+and backward by the chain rule through each line from ``d loss / d rho``, with ``dh/dcoef_j =
+blend`` and ``dh/dw_jc = dots_c``; the clamp passes the gradient where torch's does (inside,
+ends included). Gradients reach the per-kernel rows (coef, norm, weights, centre embedding,
+threshold, sharpness); the point side is constant (batches whose query barycentrics need a
+gradient take the torch path). The colour blend after it (``kernels.blending``) is a few
+``(P, K_c)`` torch operations, so it stays in torch and either blend rule trains through it.
 
 Why hand-written: through autograd these are a dozen passes over ``(P, K_c, K)`` and
 ``(P, K_c, D)`` gathered blocks and their scatter-add backward, a third of a training step
@@ -38,16 +39,12 @@ def _sig(x):
     return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-x)))
 
 
-def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, colors, base, scale, out, rho, pre, total, r_s, w_s, s_s):  # fmt: skip
+def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, scale, rho, r_s, w_s, s_s):  # fmt: skip
     """Also keeps per pair ``r``, the weight ``w`` and ``sig(k (r - eps))`` (``r_s``, ``w_s``,
     ``s_s``) for backward; ``low``/``high``: the soft step's ends per kernel."""
     k_c = top.shape[1]
     one = np.float32(1.0)
     for p in range(top.shape[0]):
-        a0 = np.float32(0.0)
-        a1 = np.float32(0.0)
-        a2 = np.float32(0.0)
-        tot = np.float32(0.0)
         for t in range(k_c):
             j = top[p, t]
             h = np.float32(0.0)
@@ -61,58 +58,22 @@ def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, colo
             r = h * w / norm[j]
             sr = _sig(sharp[j] * (r - thr[j]))
             u = (sr - low[j]) / (high[j] - low[j])
-            v = max(min(u, one), np.float32(0.0))
             r_s[p, t] = r
             w_s[p, t] = w
             s_s[p, t] = sr
-            rho[p, t] = v
-            a0 += v * colors[j, 0]
-            a1 += v * colors[j, 1]
-            a2 += v * colors[j, 2]
-            tot += v
-        total[p] = tot
-        den = tot if tot > one else one
-        pre[p, 0] = base[0] + a0 / den
-        pre[p, 1] = base[1] + a1 / den
-        pre[p, 2] = base[2] + a2 / den
-        for i in range(3):
-            out[p, i] = max(min(pre[p, i], one), np.float32(0.0))
+            rho[p, t] = max(min(u, one), np.float32(0.0))
 
 
-def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, low, high, colors, scale, rho, pre, total, r_s, w_s, s_s, g_out,
-              g_coef, g_norm, g_w, g_emb, g_thr, g_sharp, g_col, g_base):  # fmt: skip
+def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, low, high, scale, r_s, w_s, s_s, g_rho,
+              g_coef, g_norm, g_w, g_emb, g_thr, g_sharp):  # fmt: skip
     """Accumulates into the ``g_*`` arrays (this thread's own)."""
     k_c = top.shape[1]
     kk = coef.shape[1]
     one = np.float32(1.0)
     zero = np.float32(0.0)
-    g = np.empty(3, np.float32)
     for p in range(top.shape[0]):
-        for i in range(3):
-            x = pre[p, i]
-            g[i] = g_out[p, i] if (x >= zero and x <= one) else zero
-        g_base[0] += g[0]
-        g_base[1] += g[1]
-        g_base[2] += g[2]
-        tot = total[p]
-        den = tot if tot > one else one
-        # d out / d rho_t = a_t / den - [tot >= 1] acc / den^2, acc = sum rho a
-        acc_g = zero
-        if tot >= one:
-            for t in range(k_c):
-                j = top[p, t]
-                acc_g += rho[p, t] * (
-                    colors[j, 0] * g[0] + colors[j, 1] * g[1] + colors[j, 2] * g[2]
-                )
         for t in range(k_c):
             j = top[p, t]
-            v = rho[p, t]
-            ag = colors[j, 0] * g[0] + colors[j, 1] * g[1] + colors[j, 2] * g[2]
-            g_rho = ag / den
-            if tot >= one:
-                g_rho -= acc_g / (den * den)
-            for i in range(3):
-                g_col[j, i] += v * g[i] / den
             # soft step (r, w and sig(k (r - eps)) as forward computed them)
             e, k = thr[j], sharp[j]
             r, w, sr = r_s[p, t], w_s[p, t], s_s[p, t]
@@ -120,7 +81,7 @@ def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, l
             u = (sr - lo) / (hi - lo)
             if not (u >= zero and u <= one):
                 continue
-            gu = g_rho / (hi - lo)
+            gu = g_rho[p, t] / (hi - lo)
             ds = sr * (one - sr)
             dl = lo * (one - lo)
             dh = hi * (one - hi)
@@ -155,46 +116,40 @@ def _kernels():
     return _FORWARD, _BACKWARD
 
 
-class PairBlend(torch.autograd.Function):
-    """``(albedo (P, 3), rho (P, K_c))`` of the chosen pairs ``top`` (rows of the per-kernel
-    arrays) with saved ``dots``/``blend``; see the module doc."""
+class PairResponse(torch.autograd.Function):
+    """``rho`` (P, K_c) of the chosen pairs ``top`` (rows of the per-kernel arrays) with saved
+    ``dots``/``blend``; see the module doc."""
 
     @staticmethod
-    def forward(ctx, top, dots, blend, emb_y, sigma_b, coef, norm, weights, emb_c, thr, sharp, colors, base):  # type: ignore[override]  # fmt: skip
+    def forward(ctx, top, dots, blend, emb_y, sigma_b, coef, norm, weights, emb_c, thr, sharp):  # type: ignore[override]  # fmt: skip
         forward, _ = _kernels()
-        p = top.shape[0]
         # the soft step's ends per kernel, by soft_step's own torch expressions
         low = torch.sigmoid(-sharp.detach() * thr.detach())
         high = torch.sigmoid(sharp.detach() * (1 - thr.detach()))
-        arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, colors, base)]  # fmt: skip
-        out = np.empty((p, 3), np.float32)
+        arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high)]  # fmt: skip
         rho, r_s, w_s, s_s = (np.empty(top.shape, np.float32) for _ in range(4))
-        pre = np.empty((p, 3), np.float32)
-        total = np.empty(p, np.float32)
         scale = np.float32(2.0 * sigma_b**2)
 
         def run(sl: slice) -> None:
-            forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, out[sl], rho[sl], pre[sl], total[sl], r_s[sl], w_s[sl], s_s[sl])  # fmt: skip
+            forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, rho[sl], r_s[sl], w_s[sl], s_s[sl])  # fmt: skip
 
-        compiled.run_threaded(run, p, THREAD_MIN_POINTS)
-        rho_t = torch.from_numpy(rho)
+        compiled.run_threaded(run, top.shape[0], THREAD_MIN_POINTS)
         ctx.scale = scale
-        ctx.per_pair = [pre, total, r_s, w_s, s_s]
+        ctx.per_pair = [r_s, w_s, s_s]
         ctx.ends = [compiled.array(low), compiled.array(high)]
-        ctx.save_for_backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho_t)  # fmt: skip
-        ctx.mark_non_differentiable(rho_t)
-        return torch.from_numpy(out), rho_t
+        ctx.save_for_backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp)
+        return torch.from_numpy(rho)
 
     @staticmethod
-    def backward(ctx, g_out, _g_rho):  # type: ignore[override]
+    def backward(ctx, g_rho):  # type: ignore[override]
         _, backward = _kernels()
         saved = [compiled.array(x) for x in ctx.saved_tensors]
-        top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, colors, rho = saved
-        pre, total, r_s, w_s, s_s = ctx.per_pair
+        top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp = saved
+        r_s, w_s, s_s = ctx.per_pair
         low, high = ctx.ends
-        g = compiled.array(g_out.to(torch.float32))
+        g = compiled.array(g_rho.to(torch.float32).contiguous())
         p = top.shape[0]
-        shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape, colors.shape, (3,)]  # fmt: skip
+        shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape]
         threads = max(1, min(torch.get_num_threads(), p // THREAD_MIN_POINTS))
         accs = [[np.zeros(s, np.float32) for s in shapes] for _ in range(threads)]
         bounds = np.linspace(0, p, threads + 1).astype(int)
@@ -202,7 +157,7 @@ class PairBlend(torch.autograd.Function):
 
         def run(i: int) -> None:
             sl = slices[i]
-            backward(top[sl], dots[sl], blend[sl], emb_y[sl], coef, norm, weights, emb_c, thr, sharp, low, high, colors, ctx.scale, rho[sl], pre[sl], total[sl], r_s[sl], w_s[sl], s_s[sl], g[sl], *accs[i])  # fmt: skip
+            backward(top[sl], dots[sl], blend[sl], emb_y[sl], coef, norm, weights, emb_c, thr, sharp, low, high, ctx.scale, r_s[sl], w_s[sl], s_s[sl], g[sl], *accs[i])  # fmt: skip
 
         compiled.run_each(run, threads)
         grads = [sum(a[n] for a in accs[1:]) + accs[0][n] for n in range(len(shapes))]

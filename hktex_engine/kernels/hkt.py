@@ -20,8 +20,14 @@ difference needs (version 2: the ids themselves), two barycentrics on the simple
 midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
 own range. Version 4 puts the packed members' deflate streams one after another in a single
 stored member ``codes.bin`` and the base colour in the manifest; versions 2 and 3 kept one
-``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 4; a version-1 file is
+``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 6; a version-1 file is
 written unless quantisation is asked for, so older readers keep reading what they read before.
+
+A set for the layered blend (``KernelConfig.blend = "layered"``, ``kernels.blending``) has one
+more member, ``priority``: version 5 is version 1 with it (float16 when compact), version 6
+version 4 with its codes as a last stream (linear over the priority's range). A paper set is
+never written as 5 or 6, and a reader older than them refuses a layered set by its version
+rather than evaluating it with the wrong blend.
 
 Reading is defensive because a file may come from anyone: members are checked for size before
 they are decompressed (zip bombs), ``.npy`` headers are parsed with pickles refused, and
@@ -45,6 +51,7 @@ from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels.model import (
     ETA_RANGE,
+    PRIORITY_RANGE,
     SHARPNESS_RANGE,
     THETA_RANGE,
     THRESHOLD_RANGE,
@@ -52,7 +59,7 @@ from hktex_engine.kernels.model import (
 )
 
 FORMAT = "hktex-kernels"
-VERSION = 4
+VERSION = 6
 #: The version a plain (unquantised) file is written as; readers of version 1 read it.
 PLAIN_VERSION = 1
 #: Version 2: quantised members, face ids as plain codes. Version 3 (what is written): the
@@ -66,7 +73,13 @@ QUANTISED_V3 = 3
 #: without indentation. The same numbers; ~1.2-1.4 KB less per file (seven zip entries and
 #: ``.npy`` headers fewer), which is most of a small set's overhead.
 QUANTISED_VERSION = 4
-QUANTISED_VERSIONS = (QUANTISED_V2, QUANTISED_V3, QUANTISED_VERSION)
+#: The layered blend's versions: 1 and 4 with a ``priority`` member (see the module doc).
+PLAIN_LAYERED_VERSION = 5
+QUANTISED_LAYERED_VERSION = 6
+LAYERED_VERSIONS = (PLAIN_LAYERED_VERSION, QUANTISED_LAYERED_VERSION)
+QUANTISED_VERSIONS = (QUANTISED_V2, QUANTISED_V3, QUANTISED_VERSION, QUANTISED_LAYERED_VERSION)
+#: Versions whose codes sit in one ``codes.bin`` member (version 4's layout).
+STREAM_VERSIONS = (QUANTISED_VERSION, QUANTISED_LAYERED_VERSION)
 #: Members and their columns (0 = a vector). ``base_color`` has 3 entries, not one per kernel.
 MEMBERS: dict[str, int] = {
     "face_ids": 0,
@@ -82,6 +95,9 @@ MEMBERS: dict[str, int] = {
 CODES_MEMBER = "codes.bin"
 #: The per-kernel members a quantised file packs, in their stored order.
 PACKED = tuple(name for name in MEMBERS if name != "base_color")
+#: A layered set's members: the paper's and one priority per kernel.
+LAYERED_MEMBERS: dict[str, int] = {**MEMBERS, "priority": 0}
+LAYERED_PACKED = (*PACKED, "priority")
 COLOR_SPACES = ("srgb", "linear")
 #: Refuse kernel counts beyond this (a fit's budget is ~70k; 10M is far past any real set).
 MAX_KERNELS = 10_000_000
@@ -101,12 +117,16 @@ QUANT_BITS: dict[str, int] = {
     "sharpness": 8,
     "colors": 8,
 }
+#: The layered blend's priority (``bits={"priority": b}`` overrides): 8 bits over [-8, 8] is
+#: a step of 0.063, a share off by at most 3 % between two kernels of neighbouring codes.
+PRIORITY_BITS = 8
 #: How each member's codes map to values: (map, lo, hi); colours carry per-channel ranges.
 _QUANT_MAPS: dict[str, tuple[str, float, float]] = {
     "theta": ("linear", THETA_RANGE[0], THETA_RANGE[1]),
     "eta": ("log", ETA_RANGE[0], ETA_RANGE[1]),
     "threshold": ("mid", THRESHOLD_RANGE[0], 1.0),
     "sharpness": ("log", SHARPNESS_RANGE[0], SHARPNESS_RANGE[1]),
+    "priority": ("linear", PRIORITY_RANGE[0], PRIORITY_RANGE[1]),
 }
 _COMPACT_FLOATS = {
     "barycentrics": np.float16,
@@ -116,6 +136,7 @@ _COMPACT_FLOATS = {
     "sharpness": np.float16,
     "colors": np.float16,
     "base_color": np.float32,
+    "priority": np.float16,  # 4e-3 at |beta| = 8 at most: a share changes by < 0.4 %
 }
 
 
@@ -177,7 +198,7 @@ def encode_hkt(
         extra["base_color"] = [float(x) for x in members.pop("base_color")]  # float32, exact
         # each packed member deflated on its own (its own Huffman tables: one deflate of them
         # all measured +810 B on a 2,216-kernel set), one after another in one stored entry
-        parts = [_deflate(members[name].tobytes()) for name in PACKED]
+        parts = [_deflate(members[name].tobytes()) for name in _packed(_layered(kernelset))]
         extra["streams"] = [len(p) for p in parts]
         streams = b"".join(parts)
         arrays = {}
@@ -185,7 +206,7 @@ def encode_hkt(
         arrays = _stored_arrays(kernelset, compact)
     manifest = {
         "format": FORMAT,
-        "version": QUANTISED_VERSION if quantised else PLAIN_VERSION,
+        "version": _version(quantised, _layered(kernelset)),
         "count": len(kernelset),
         "mesh_hash": kernelset.mesh_hash,
         "config_hash": kernelset.config_hash,
@@ -208,6 +229,24 @@ def encode_hkt(
         layout = {"separators": (",", ":")} if quantised else {"indent": 1}
         zf.writestr("manifest.json", json.dumps(manifest, default=_json_default, **layout))
     return out.getvalue()
+
+
+def _layered(ks: KernelSet) -> bool:
+    return ks.kernel_config.blend == "layered"
+
+
+def _members(layered: bool) -> dict[str, int]:
+    return LAYERED_MEMBERS if layered else MEMBERS
+
+
+def _packed(layered: bool) -> tuple[str, ...]:
+    return LAYERED_PACKED if layered else PACKED
+
+
+def _version(quantised: bool, layered: bool) -> int:
+    if layered:
+        return QUANTISED_LAYERED_VERSION if quantised else PLAIN_LAYERED_VERSION
+    return QUANTISED_VERSION if quantised else PLAIN_VERSION
 
 
 def _deflate(data: bytes) -> bytes:
@@ -237,7 +276,7 @@ def _json_default(value: object) -> object:
 
 
 def _stored_arrays(ks: KernelSet, compact: bool) -> dict[str, np.ndarray]:
-    arrays = {name: np.asarray(getattr(ks, name)) for name in MEMBERS}
+    arrays = {name: np.asarray(getattr(ks, name)) for name in _members(_layered(ks))}
     if not compact:
         out = {n: a.astype(np.float32) for n, a in arrays.items() if n != "face_ids"}
         return {"face_ids": arrays["face_ids"].astype(np.int64), **out}
@@ -245,7 +284,8 @@ def _stored_arrays(ks: KernelSet, compact: bool) -> dict[str, np.ndarray]:
     face_dtype = np.uint16 if fmax <= np.iinfo(np.uint16).max else np.uint32
     out = {"face_ids": arrays["face_ids"].astype(face_dtype)}
     for name, dtype in _COMPACT_FLOATS.items():
-        out[name] = arrays[name].astype(dtype)
+        if name in arrays:
+            out[name] = arrays[name].astype(dtype)
     return out
 
 
@@ -258,11 +298,11 @@ def load_hkt(
     try:
         with zipfile.ZipFile(path) as zf:
             manifest = _read_manifest(zf)
-            n = manifest["count"]
+            n, members = manifest["count"], _members(manifest["version"] in LAYERED_VERSIONS)
             if manifest["version"] in QUANTISED_VERSIONS:
                 arrays = _read_quantised(zf, manifest, n)
             else:
-                arrays = {name: _read_member(zf, name, n, cols) for name, cols in MEMBERS.items()}
+                arrays = {name: _read_member(zf, name, n, cols) for name, cols in members.items()}
     except zipfile.BadZipFile as exc:
         raise KernelSetError(f"not a kernel-set file (not a valid zip archive: {exc})") from exc
     except (OSError, EOFError, zlib.error, zipfile.LargeZipFile) as exc:
@@ -315,6 +355,11 @@ def _read_manifest(zf: zipfile.ZipFile) -> dict:
         )
     if manifest.get("color_space") not in COLOR_SPACES:
         raise KernelSetError(f"manifest color_space must be one of {COLOR_SPACES}")
+    layered = manifest.get("blend", "paper") == "layered"
+    if layered != (version in LAYERED_VERSIONS):
+        raise KernelSetError(
+            f"a version-{version} file cannot hold a {manifest.get('blend', 'paper')!r} blend"
+        )
     return manifest
 
 
@@ -354,6 +399,7 @@ def _kernel_config(manifest: dict) -> KernelConfig:
             sigma_b=float(manifest["sigma_b"]),
             k_search=int(manifest["k_search"]),
             k_blend=int(manifest["k_blend"]),
+            blend=str(manifest.get("blend", "paper")),  # versions 1-4 predate the field
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise KernelSetError(f"manifest lacks a valid kernel config: {exc}") from exc
@@ -369,9 +415,9 @@ def _kernel_config(manifest: dict) -> KernelConfig:
 
 def _bits(ks: KernelSet, bits: dict[str, int] | None) -> dict[str, int]:
     """Code widths per member: :data:`QUANT_BITS` overridden by ``bits``, face ids minimal."""
-    out = dict(QUANT_BITS)
+    out = {**QUANT_BITS, "priority": PRIORITY_BITS}
     for name, b in (bits or {}).items():
-        if name not in QUANT_BITS:
+        if name not in out:
             raise KernelSetError(f"no quantisation width for member {name!r}")
         if not isinstance(b, int | np.integer) or not 1 <= int(b) <= 16:
             raise KernelSetError(f"quantisation width of {name!r} must be in [1, 16], not {b!r}")
@@ -391,7 +437,9 @@ def sorted_by_face(ks: KernelSet) -> KernelSet:
     if np.array_equal(order, np.arange(order.shape[0])):
         return ks
     per_kernel = {
-        name: np.asarray(getattr(ks, name))[order] for name in MEMBERS if name != "base_color"
+        name: np.asarray(getattr(ks, name))[order]
+        for name in _members(_layered(ks))
+        if name != "base_color"
     }
     return dataclasses.replace(ks, **per_kernel)
 
@@ -474,6 +522,8 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
         ),
     }
     for name, (kind, lo, hi) in _QUANT_MAPS.items():
+        if name not in _members(_layered(ks)):
+            continue
         table[name] = {"bits": bits[name], "map": kind, "lo": lo, "hi": hi}
         arrays[name] = pack_codes(
             _encode_scalar(getattr(ks, name), kind, lo, hi, bits[name]), bits[name]
@@ -495,13 +545,15 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
 
 
 def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np.ndarray]:
-    """Members of a version-2, -3 or -4 file, decoded and checked against the manifest's table."""
+    """Members of a version-2, -3, -4 or -6 file, decoded and checked against the manifest's
+    table."""
     table = manifest.get("quantisation")
     if not isinstance(table, dict):
         raise KernelSetError("quantised kernel-set file lacks its quantisation table")
     version = manifest["version"]
+    names = _packed(version in LAYERED_VERSIONS)
     widths: dict[str, int] = {}
-    for name in PACKED:
+    for name in names:
         spec = table.get(name)
         if not isinstance(spec, dict):
             raise KernelSetError(f"quantisation table lacks member {name!r}")
@@ -510,9 +562,9 @@ def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np
         if not isinstance(bits, int) or not 1 <= bits <= limit:
             raise KernelSetError(f"quantisation width of {name!r} must be in [1, {limit}]")
         widths[name] = bits
-    counts = {name: n * _code_count(name) for name in PACKED}
-    sizes = {name: -(-counts[name] * widths[name] // 8) for name in PACKED}
-    if version == QUANTISED_VERSION:
+    counts = {name: n * _code_count(name) for name in names}
+    sizes = {name: -(-counts[name] * widths[name] // 8) for name in names}
+    if version in STREAM_VERSIONS:
         packed = _read_streams(zf, manifest.get("streams"), sizes)
         base = np.asarray(manifest.get("base_color"), dtype=object)
         if base.shape != (3,) or not all(isinstance(x, int | float) for x in base):
@@ -521,19 +573,20 @@ def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np
             raise KernelSetError("manifest base_color must be finite")
         out: dict[str, np.ndarray] = {"base_color": base.astype(np.float64)}
     else:
-        packed = {name: _read_packed(zf, name, 8 * sizes[name]) for name in PACKED}
+        packed = {name: _read_packed(zf, name, 8 * sizes[name]) for name in names}
         out = {"base_color": _read_member(zf, "base_color", n, 0)}
-    for name in PACKED:
+    for name in names:
         out[name] = _decode_member(name, table[name], packed[name], counts[name], n, version)
     return out
 
 
 def _read_streams(zf: zipfile.ZipFile, lengths, sizes: dict[str, int]) -> dict[str, np.ndarray]:
-    """The packed members of a version-4 file: one raw deflate stream each, in
-    :data:`PACKED` order, their compressed ``lengths`` in the manifest."""
-    ok = isinstance(lengths, list) and len(lengths) == len(PACKED)
+    """The packed members of a version-4 or -6 file: one raw deflate stream each, in
+    ``sizes``' order (:data:`PACKED`, then ``priority``), their compressed ``lengths`` in the
+    manifest."""
+    ok = isinstance(lengths, list) and len(lengths) == len(sizes)
     if not ok or not all(isinstance(x, int) and x > 0 for x in lengths):
-        raise KernelSetError(f"manifest streams must be {len(PACKED)} positive lengths")
+        raise KernelSetError(f"manifest streams must be {len(sizes)} positive lengths")
     try:
         info = zf.getinfo(CODES_MEMBER)
     except KeyError:
@@ -543,7 +596,7 @@ def _read_streams(zf: zipfile.ZipFile, lengths, sizes: dict[str, int]) -> dict[s
         raise KernelSetError(f"member {CODES_MEMBER!r} does not hold the manifest's streams")
     data = zf.read(info)
     out, start = {}, 0
-    for name, length in zip(PACKED, lengths, strict=True):
+    for name, length in zip(sizes, lengths, strict=True):
         raw = _inflate(data[start : start + length], sizes[name], name)
         out[name] = np.frombuffer(raw, dtype=np.uint8)
         start += length
@@ -552,7 +605,7 @@ def _read_streams(zf: zipfile.ZipFile, lengths, sizes: dict[str, int]) -> dict[s
 
 def _code_count(name: str) -> int:
     """Codes per kernel of a packed member (two barycentrics: the third is implied)."""
-    return 2 if name == "barycentrics" else max(MEMBERS[name], 1)
+    return 2 if name == "barycentrics" else max(LAYERED_MEMBERS[name], 1)
 
 
 def _decode_member(

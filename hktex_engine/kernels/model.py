@@ -9,6 +9,9 @@ holds the same kernels as torch parameters on a device and evaluates albedo at s
     rho_j(y) = S(r_j(y); eps_j, k_j)
     albedo(y) = clamp(a_0 + sum_{top K_c} rho_j a_j / max(1, sum rho_j), 0, 1)
 
+or, with ``KernelConfig.blend = "layered"``, the layered blend of ``kernels.blending`` (a
+learnable priority per kernel decides the shares where kernels overlap).
+
 Evaluation for P points and K_s candidates each: the point's eigenfunctions on every grid node
 ``Phi_y`` (P, G, K) come from three contiguous vertex rows; each kernel's spectral coefficients
 ``coef_j = exp(-t lambda^j) * phi^j(c_j)`` (K,) are per kernel; one batched matmul gives
@@ -29,7 +32,7 @@ from torch import nn
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError
-from hktex_engine.kernels import fused_blend, fused_pairs, fused_rank, fused_terms
+from hktex_engine.kernels import blending, fused_blend, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.knn import CandidateSearch
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
 from hktex_engine.kernels.tables import (
@@ -50,6 +53,7 @@ ETA_RANGE = (1.0, 200.0)
 THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
 SHARPNESS_RANGE = (10.0, 200.0)
 COLOR_RANGE = (-1.0, 1.0)
+PRIORITY_RANGE = blending.PRIORITY_RANGE
 BASE_RANGE = (0.0, 1.0)
 #: How ``h_j(y)`` is computed without gradients: "auto" picks per batch between the node
 #: matmul ("bmm") and shared (vertex, kernel) pairs ("vertex"); see ``_h_by_vertex_pairs``.
@@ -98,6 +102,8 @@ class KernelSet:
     colors: np.ndarray  # (N, 3) residuals in [-1, 1]
     base_color: np.ndarray  # (3,) in [0, 1]
     kernel_config: KernelConfig = field(default_factory=KernelConfig)
+    #: (N,) in PRIORITY_RANGE for the layered blend (kernel_config.blend); None for the paper's
+    priority: np.ndarray | None = None
     mesh_hash: str = ""
     config_hash: str = ""
     color_space: str = "srgb"
@@ -130,6 +136,7 @@ class KernelSet:
                 raise KernelSetError(f"member {name!r} contains NaN or infinity")
         if n == 0:
             raise KernelSetError("the kernel set is empty")
+        self._validate_priority(n)
         if np.asarray(self.face_ids).dtype.kind == "f":
             raise KernelSetError("member 'face_ids' must be integers")
         fid = np.asarray(self.face_ids)
@@ -152,6 +159,21 @@ class KernelSet:
         )
         _check_range("colors", self.colors, COLOR_RANGE[0] - eps, COLOR_RANGE[1] + eps)
         _check_range("base_color", self.base_color, BASE_RANGE[0] - eps, BASE_RANGE[1] + eps)
+
+    def _validate_priority(self, n: int) -> None:
+        """A layered set carries one finite priority per kernel in range; a paper set none."""
+        layered = self.kernel_config.blend == "layered"
+        if self.priority is None:
+            if layered:
+                raise KernelSetError("a layered kernel set needs member 'priority'")
+            return
+        if not layered:
+            raise KernelSetError("member 'priority' belongs to the layered blend only")
+        arr = np.asarray(self.priority)
+        if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
+            raise KernelSetError(f"member 'priority' must be {n} finite floats")
+        lo, hi = PRIORITY_RANGE
+        _check_range("priority", arr, lo - 1e-2, hi + 1e-2)
 
 
 def _check_range(name: str, values: np.ndarray, lo: float, hi: float) -> None:
@@ -217,6 +239,7 @@ class HeatKernelModel(nn.Module):
         base_color: torch.Tensor | np.ndarray,
         config: KernelConfig | None = None,
         knn_backend: str = "auto",
+        priority: torch.Tensor | np.ndarray | None = None,
     ) -> None:
         super().__init__()
         self.field = field
@@ -231,6 +254,10 @@ class HeatKernelModel(nn.Module):
         self.sharpness = nn.Parameter(_float(sharpness, dev, dt))
         self.colors = nn.Parameter(_float(colors, dev, dt))
         self.base_color = nn.Parameter(_float(base_color, dev, dt))
+        if priority is None:  # every kernel on one layer: the layered blend starts as the paper's
+            priority = torch.zeros(self.face_ids.shape[0], device=dev, dtype=dt)
+        # the paper's blend never reads it: no gradient, no optimiser state
+        self.priority = nn.Parameter(_float(priority, dev, dt), requires_grad=self.layered)
         self._check_shapes()
         self._generation = 0
         self._cache_key: tuple | None = None
@@ -274,6 +301,9 @@ class HeatKernelModel(nn.Module):
             np.asarray(kernelset.base_color, dtype=np.float64),
             config=kernelset.kernel_config,
             knn_backend=knn_backend,
+            priority=None
+            if kernelset.priority is None
+            else np.asarray(kernelset.priority, dtype=np.float64),
         )
 
     def to_kernelset(
@@ -294,6 +324,7 @@ class HeatKernelModel(nn.Module):
             colors=np_(self.colors).astype(np.float64),
             base_color=np_(self.base_color).astype(np.float64),
             kernel_config=self.config,
+            priority=np_(self.priority).astype(np.float64) if self.layered else None,
             mesh_hash=self.field.spectra.mesh_hash,
             config_hash=self.field.spectra.config_hash,
             color_space=color_space,
@@ -311,6 +342,7 @@ class HeatKernelModel(nn.Module):
             "sharpness": (n,),
             "colors": (n, 3),
             "base_color": (3,),
+            "priority": (n,),
         }
         for name, shape in expect.items():
             got = tuple(getattr(self, name).shape)
@@ -327,6 +359,14 @@ class HeatKernelModel(nn.Module):
     def eta(self) -> torch.Tensor:
         return torch.expm1(self.s)
 
+    @property
+    def layered(self) -> bool:
+        """Whether colours blend by priority (``kernels.blending``) rather than §5's average."""
+        return self.config.blend == "layered"
+
+    def _priority_of(self, kid: torch.Tensor) -> torch.Tensor | None:
+        return self.priority[kid] if self.layered else None
+
     @torch.no_grad()
     def project_(self) -> None:
         """Clamp every attribute into its range after an optimiser step."""
@@ -336,6 +376,7 @@ class HeatKernelModel(nn.Module):
         self.sharpness.clamp_(*SHARPNESS_RANGE)
         self.colors.clamp_(*COLOR_RANGE)
         self.base_color.clamp_(*BASE_RANGE)
+        self.priority.clamp_(*PRIORITY_RANGE)
         self.bary.clamp_(min=0.0)
         self.bary.div_(self.bary.sum(dim=1, keepdim=True))
 
@@ -377,12 +418,23 @@ class HeatKernelModel(nn.Module):
         threshold: torch.Tensor | np.ndarray,
         sharpness: torch.Tensor | np.ndarray,
         colors: torch.Tensor | np.ndarray,
+        priority: torch.Tensor | np.ndarray | None = None,
     ) -> HeatKernelModel:
-        """Add kernels at the end (``eta`` in natural units), in place."""
+        """Add kernels at the end (``eta`` in natural units; ``priority`` 0 unless given)."""
         dev, dt = self.field.device, self.field.dtype
         self._roster += 1
+        if priority is None:
+            priority = torch.zeros(len(face_ids), device=dev, dtype=dt)
         self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
-        new = [bary, theta, torch.log1p(_float(eta, dev, dt)), threshold, sharpness, colors]
+        new = [
+            bary,
+            theta,
+            torch.log1p(_float(eta, dev, dt)),
+            threshold,
+            sharpness,
+            colors,
+            priority,
+        ]
         for p, rows in zip(self._row_params(), new, strict=True):
             p.data = torch.cat([p.data, _float(rows, dev, dt)])
             p.grad = None
@@ -391,7 +443,10 @@ class HeatKernelModel(nn.Module):
         return self
 
     def _row_params(self) -> list[nn.Parameter]:
-        return [self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors]
+        return [
+            self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
+            self.priority,
+        ]  # fmt: skip
 
     # ----------------------------------------------------------------- caches
     def _version_key(self, params: list[torch.Tensor]) -> tuple:
@@ -530,8 +585,9 @@ class HeatKernelModel(nn.Module):
             args = (norm, self.threshold, self.sharpness, self.colors, self.base_color)
             cfg = self.config
             out, kid, rho = fused_blend.blend(
-                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=return_aux
-            )
+                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=return_aux,
+                priority=self.priority if self.layered else None,
+            )  # fmt: skip
             return (out, {"indices": kid, "rho": rho}) if return_aux else out
         row, kid, d2 = point_distances(ft, face_ids, bary)
         # exact K_s cut first (distance, then kernel id; padding gets distinct ids above every
@@ -547,9 +603,7 @@ class HeatKernelModel(nn.Module):
         rho = soft_step(r, self.threshold[kid], self.sharpness[kid])
         top = select_by_rule(rho, d2, kid, min(self.config.k_blend, k_s))
         rho_top, kid = rho.gather(1, top), kid.gather(1, top)
-        weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
-        denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
-        out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
+        out = self._mix(rho_top, kid)
         if return_aux:
             return out, {"indices": kid, "rho": rho_top}
         return out
@@ -679,12 +733,14 @@ class HeatKernelModel(nn.Module):
                 pos = select_by_rule(rho.detach(), d2.detach(), cand, k_c)
                 rho_top = rho.gather(1, pos)
                 kid = cand.gather(1, pos)
-        weighted = torch.einsum("pc,pcd->pd", rho_top, self.colors[kid])
-        denom = torch.clamp(rho_top.sum(dim=1, keepdim=True), min=1.0)
-        out = torch.clamp(self.base_color[None, :] + weighted / denom, 0.0, 1.0)
+        out = self._mix(rho_top, kid)
         if return_aux:
             return out, {"indices": kid, "rho": rho_top}
         return out
+
+    def _mix(self, rho_top: torch.Tensor, kid: torch.Tensor) -> torch.Tensor:
+        """The colours of points whose chosen kernels are ``kid`` with responses ``rho_top``."""
+        return blending.albedo(rho_top, self.colors[kid], self.base_color, self._priority_of(kid))
 
     def _grad_needed(self) -> bool:
         return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
@@ -757,7 +813,7 @@ class HeatKernelModel(nn.Module):
         uniq, local, terms = self._candidate_terms(cand)
         coef, norm, nodes, weights, emb_c = terms
         k_c = min(self.config.k_blend, cand.shape[1])
-        attrs = [self.threshold, self.sharpness, self.colors]
+        attrs = [self.threshold, self.sharpness]
         if uniq.shape[0] != len(self):
             attrs = [a[uniq] for a in attrs]
         top, dots, blend, _ = fused_rank.rank_pairs(
@@ -776,11 +832,11 @@ class HeatKernelModel(nn.Module):
             k_c,
         )
         emb_y = self._embedding(face_ids, bary.detach())
-        out, rho = fused_pairs.PairBlend.apply(
-            top, dots, blend, emb_y, self.config.sigma_b, coef, norm, weights, emb_c, *attrs,
-            self.base_color,
-        )  # fmt: skip
-        return out, uniq[top], rho
+        rho = fused_pairs.PairResponse.apply(
+            top, dots, blend, emb_y, self.config.sigma_b, coef, norm, weights, emb_c, *attrs[:2]
+        )
+        kid = uniq[top]
+        return self._mix(rho, kid), kid, rho.detach()
 
     def _pair_graph(self, face_ids, bary, uniq, terms, top, dots, blend):
         """``(kid, rho)`` of the chosen pairs ``top`` (rows of ``terms``), with a graph."""

@@ -61,6 +61,11 @@ class FitParamsIn(_Strict):
         description="training points: fresh area-uniform ones each step, or drawn from a pool "
         "in proportion to their residual (weighted so the loss stays the surface mean)",
     )
+    blend: Literal["paper", "layered"] | None = Field(
+        None,
+        description="colour rule: ALGORITHM.md §5's average, or 'layered' (a learnable priority"
+        " per kernel, .hkt version 5/6; docs/kernels.md)",
+    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)
@@ -75,6 +80,7 @@ class FitParamsIn(_Strict):
     lr_sharpness: float | None = Field(None, gt=0, le=10)
     lr_base: float | None = Field(None, gt=0, le=10)
     lr_centers: float | None = Field(None, gt=0, le=10)
+    lr_priority: float | None = Field(None, gt=0, le=10)
     eval_points: int | None = Field(
         None, ge=100, le=1_000_000, description="surface points for the final metrics (fit_uv)"
     )
