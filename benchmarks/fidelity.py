@@ -52,7 +52,7 @@ from hktex_engine.evaluation.diagnostics import edge_flat_split, saturation, tru
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.fitting.uv import evaluate_albedo, fit_uv
 from hktex_engine.geometry.mesh import load_mesh
-from hktex_engine.kernels.hkt import QUANTISED_VERSION
+from hktex_engine.kernels.hkt import written_version
 from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.spectra.grid import SpectraCache
 from hktex_engine.spectra.interpolation import SpectralField
@@ -293,7 +293,7 @@ def measure_file(row: dict, ks, mesh, spectra, f, b, target, curve) -> None:
 
     qz = hkt_bytes(ks, quantised=True)["zip"]
     row["bytes_zip_quantised"] = qz
-    row["quantised_version"] = QUANTISED_VERSION
+    row["quantised_version"] = written_version(ks, quantised=True)
     row["vertex_colours_equal_quantised_bytes"] = at_equal_bytes(curve, qz)
     if spectra is not None:
         row["quantised_auto"] = auto_row(quantisation_for(mesh, spectra, ks, f, b, target), curve)

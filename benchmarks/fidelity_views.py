@@ -37,7 +37,7 @@ from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.baselines import VertexColorBaseline, subdivided_location
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.evaluation.paper_views import PaperViews, kernelset_albedo_fn
-from hktex_engine.kernels.hkt import QUANTISED_VERSION, hkt_bytes, load_hkt
+from hktex_engine.kernels.hkt import hkt_bytes, load_hkt, written_version
 from hktex_engine.spectra.grid import SpectraCache
 
 SCORES = ("psnr_all", "psnr_mesh", "ssim_all", "ssim_mesh")
@@ -107,7 +107,7 @@ def score_set(
         "kernels": len(ks),
         "surface_psnr": surface,
         "bytes_zip_quantised": qz,
-        "quantised_version": QUANTISED_VERSION,
+        "quantised_version": written_version(ks, quantised=True),
         **{f"view_{k}": s[k] for k in SCORES},
         "vc_equal_bytes": {k: curve_at(curve, k, qz) for k in ("psnr_all", "psnr_mesh")},
         "vc_twice_bytes": {k: curve_at(curve, k, 2 * qz) for k in ("psnr_all", "psnr_mesh")},
@@ -122,9 +122,10 @@ def rebyte(jsonl: Path) -> None:
     for r in rows:
         if not Path(r["hkt"]).is_file():
             continue
-        qz = hkt_bytes(load_hkt(r["hkt"]), quantised=True)["zip"]
+        ks = load_hkt(r["hkt"])
+        qz = hkt_bytes(ks, quantised=True)["zip"]
         r["bytes_zip_quantised"] = qz
-        r["quantised_version"] = QUANTISED_VERSION
+        r["quantised_version"] = written_version(ks, quantised=True)
         for key, factor in (("vc_equal_bytes", 1), ("vc_twice_bytes", 2)):
             r[key] = {k: curve_at(r["vc_curve"], k, factor * qz) for k in ("psnr_all", "psnr_mesh")}
     jsonl.write_text("".join(json.dumps(r, default=float) + "\n" for r in rows))

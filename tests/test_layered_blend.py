@@ -186,3 +186,34 @@ def test_a_fit_trains_the_priorities_and_keeps_them_through_density_control():
         a = HeatKernelModel.from_kernelset(ks, field).albedo(f, b)
         c = HeatKernelModel.from_kernelset(back, field).albedo(f, b)
     np.testing.assert_allclose(a.numpy(), c.numpy(), atol=1e-5)
+
+
+def test_flat_params_pick_the_blend():
+    """``hktex fit --blend`` and the API's ``params.blend`` reach the kernel config."""
+    from hktex_engine.config import fit_params_from
+
+    assert fit_params_from({}).kernel.blend == "paper"
+    layered = fit_params_from({"blend": "layered", "preset": "later"})
+    assert layered.kernel.blend == "layered" and layered.kernel.k_blend == 30
+    with pytest.raises(ValueError, match="blend must be one of"):
+        fit_params_from({"blend": "multiply"})
+
+
+@pytest.mark.parametrize(("quantise", "version"), [(False, 5), (True, 6)])
+def test_cli_fit_writes_a_layered_set(tmp_path, capsys, quantise, version):
+    from hktex_engine.cli import main
+    from hktex_engine.evaluation.synthetic import write_textured_obj
+    from hktex_engine.spectra.grid import compute_spectra, write_spectra
+    from tests.test_fit_uv import TINY, two_colour_arrays, two_colour_sphere
+
+    sdir = write_spectra(compute_spectra(two_colour_sphere(), TINY), tmp_path / "spectra")
+    obj = write_textured_obj(tmp_path / "m.obj", *two_colour_arrays())
+    out = tmp_path / "l.hkt"
+    argv = [str(obj), "-o", str(out), "--spectra", str(sdir), "--kernels", "60"]
+    argv += ["--steps", "3", "--eval-points", "300", "--json", "--blend", "layered"]
+    assert main(["fit", *argv, *(["--quantise"] if quantise else [])]) == 0
+    json.loads(capsys.readouterr().out)
+    with zipfile.ZipFile(out) as zf:
+        assert json.loads(zf.read("manifest.json"))["version"] == version
+    ks = load_hkt(out)
+    assert ks.kernel_config.blend == "layered" and ks.priority.shape == (len(ks),)

@@ -261,6 +261,8 @@ def test_hostile_jobs_and_queries(server, mesh_files):
         assert c.post("/v1/jobs", json={"mesh_id": mid, "task": "fit_multiview"}).status_code == 422
         assert c.post("/v1/jobs", json={"mesh_id": mid, "params": {"steps": -1}}).status_code == 422
         assert c.post("/v1/jobs", json={"mesh_id": mid, "params": {"bogus": 1}}).status_code == 422
+        bad_blend = {"mesh_id": mid, "params": {"blend": "multiply"}}
+        assert c.post("/v1/jobs", json=bad_blend).status_code == 422
         assert (
             c.post(
                 "/v1/jobs", content=b"{not json", headers={"Content-Type": "application/json"}

@@ -243,6 +243,11 @@ def _packed(layered: bool) -> tuple[str, ...]:
     return LAYERED_PACKED if layered else PACKED
 
 
+def written_version(ks: KernelSet, quantised: bool) -> int:
+    """The format version :func:`save_hkt` writes ``ks`` as."""
+    return _version(quantised, _layered(ks))
+
+
 def _version(quantised: bool, layered: bool) -> int:
     if layered:
         return QUANTISED_LAYERED_VERSION if quantised else PLAIN_LAYERED_VERSION
