@@ -171,6 +171,8 @@ class FitParams:
     lr_base: float = 0.001
     lr_centers: float = 0.099
     lr_priority: float = 0.02
+    #: the layered blend's priorities stay 0 (the paper's blend) before this fraction of steps
+    priority_start: float = 0.0
     center_momentum: float = 0.0
     lr_decay_every: int = 1000
     lr_decay: float = 0.5

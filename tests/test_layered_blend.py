@@ -217,3 +217,23 @@ def test_cli_fit_writes_a_layered_set(tmp_path, capsys, quantise, version):
         assert json.loads(zf.read("manifest.json"))["version"] == version
     ks = load_hkt(out)
     assert ks.kernel_config.blend == "layered" and ks.priority.shape == (len(ks),)
+
+
+def test_priorities_wait_for_their_start():
+    """``priority_start``: the optimiser leaves the priorities at 0 (the paper's blend) before
+    that fraction of the steps, and trains them after it."""
+    from hktex_engine.config import fit_params_from
+    from hktex_engine.fitting.uv import fit_uv
+    from hktex_engine.spectra.grid import compute_spectra
+    from tests.test_fit_uv import TINY, two_colour_sphere
+
+    mesh = two_colour_sphere()
+    spectra = compute_spectra(mesh, TINY)
+    base = {"blend": "layered", "kernels": 40, "steps": 20, "points_per_step": 128, "seed": 2}
+    base["densify"] = False
+    never = fit_uv(mesh, spectra, fit_params_from({**base, "priority_start": 1.0}), eval_points=300)
+    assert np.all(never.kernelset.priority == 0)
+    late = fit_uv(mesh, spectra, fit_params_from({**base, "priority_start": 0.5}), eval_points=300)
+    moved = np.abs(late.kernelset.priority).max()
+    # ten steps at lr_priority: an Adam step is at most (1 - b1) / sqrt(1 - b2) ~ 3.2 lr
+    assert 0 < moved <= 10 * 0.02 * 3.2

@@ -425,6 +425,8 @@ class KernelOptimiser:
         scale = lr_factor(step_index, self.params)
         tensors = model_tensors(self.model)
         attrs = {k: v for k, v in tensors.items() if k in self.adam.lrs}
+        if step_index < self.params.priority_start * self.params.steps:
+            attrs.pop("priority", None)  # footprints first, layers after (FitParams)
         self.adam.step(attrs, scale)
         self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad

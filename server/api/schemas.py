@@ -81,6 +81,9 @@ class FitParamsIn(_Strict):
     lr_base: float | None = Field(None, gt=0, le=10)
     lr_centers: float | None = Field(None, gt=0, le=10)
     lr_priority: float | None = Field(None, gt=0, le=10)
+    priority_start: float | None = Field(
+        None, ge=0, le=1, description="layered blend: fraction of the steps before priorities train"
+    )
     eval_points: int | None = Field(
         None, ge=100, le=1_000_000, description="surface points for the final metrics (fit_uv)"
     )
