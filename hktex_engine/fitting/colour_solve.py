@@ -53,10 +53,8 @@ def blend_weights(
         b = torch.as_tensor(bary[start : start + CHUNK], device=dev, dtype=dt)
         _, aux = model.albedo(f, b, return_aux=True)
         rho, kid = aux["rho"].to(torch.float64), aux["indices"]
-        prio = None
-        if model.layered:  # padding ids (rho 0) read any kernel's priority: it cancels
-            prio = model.priority.detach()[kid.clamp(max=len(model) - 1)].to(torch.float64)
-        w = blending.weights(rho, prio)
+        prio = model.priority_of(kid)
+        w = blending.weights(rho, None if prio is None else prio.detach().to(torch.float64))
         idx_parts.append(aux["indices"].cpu().numpy())
         w_parts.append(w.cpu().numpy())
     return np.concatenate(idx_parts), np.concatenate(w_parts)

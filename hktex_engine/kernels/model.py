@@ -364,8 +364,13 @@ class HeatKernelModel(nn.Module):
         """Whether colours blend by priority (``kernels.blending``) rather than §5's average."""
         return self.config.blend == "layered"
 
-    def _priority_of(self, kid: torch.Tensor) -> torch.Tensor | None:
-        return self.priority[kid] if self.layered else None
+    def priority_of(self, kid: torch.Tensor) -> torch.Tensor | None:
+        """The layered blend's priorities of chosen kernels ``kid`` (None for the paper's
+        blend); padding ids (``rho`` 0, at or past the count) read the last kernel's, which
+        cancels in the shares."""
+        if not self.layered:
+            return None
+        return self.priority[kid.clamp(max=len(self) - 1)]
 
     @torch.no_grad()
     def project_(self) -> None:
@@ -740,7 +745,7 @@ class HeatKernelModel(nn.Module):
 
     def _mix(self, rho_top: torch.Tensor, kid: torch.Tensor) -> torch.Tensor:
         """The colours of points whose chosen kernels are ``kid`` with responses ``rho_top``."""
-        return blending.albedo(rho_top, self.colors[kid], self.base_color, self._priority_of(kid))
+        return blending.albedo(rho_top, self.colors[kid], self.base_color, self.priority_of(kid))
 
     def _grad_needed(self) -> bool:
         return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
