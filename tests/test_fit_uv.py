@@ -254,6 +254,23 @@ def test_default_preset_is_later_with_only_the_measured_changes():
     assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
 
 
+def test_layered_preset_is_the_default_with_late_priorities():
+    """'layered' differs from the default in exactly the blend and the priorities' start, and
+    the flat mapping the CLI and the API pass selects it by name."""
+    from dataclasses import fields, replace
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
+
+    default, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
+    changed = {
+        f.name for f in fields(FitParams) if getattr(default, f.name) != getattr(layered, f.name)
+    }
+    assert changed == {"kernel", "priority_start"}
+    assert layered.kernel == replace(default.kernel, blend="layered")
+    assert layered.priority_start == 0.7 and default.kernel.blend == "paper"
+    assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
+
+
 def test_spectra_k_follows_the_preset(monkeypatch, tmp_path):
     """K = 128 by default (measured better than 64 on small features at t = 0.06245, no loss
     elsewhere); the earlier regime asks for 256."""

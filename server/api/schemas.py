@@ -47,10 +47,11 @@ class SpectralConfigIn(_Strict):
 class FitParamsIn(_Strict):
     """Fitting parameters; every field optional (the preset's values, FitParams)."""
 
-    preset: Literal["default", "earlier", "later"] | None = Field(
+    preset: Literal["default", "earlier", "later", "layered"] | None = Field(
         None,
         description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
-        " + error sampling);"
+        " + error sampling; 'layered' = default + the layered blend, priorities trained"
+        " late: sharper, but .hkt versions 5/6);"
         " the other fields override it",
     )
     polish_colors: bool | None = Field(
