@@ -234,8 +234,9 @@ def test_presets_are_the_two_configurations_of_algorithm_md():
 
 def test_default_preset_is_later_with_only_the_measured_changes():
     """The product's default differs from the authors' later configuration in exactly the
-    fields docs/fitting.md measured ("Choosing the defaults"), and `later` keeps their rates."""
-    from dataclasses import fields
+    fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth and eleventh
+    passes), and `later` keeps their rates and their σ_B."""
+    from dataclasses import fields, replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS
 
@@ -250,8 +251,10 @@ def test_default_preset_is_later_with_only_the_measured_changes():
         "sampling": "error",
         "lr_sharpness": 0.2,
         "lr_threshold": 0.0055,
+        "kernel": replace(later.kernel, sigma_b=0.03),
     }
     assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
+    assert later.kernel.sigma_b == 0.05
 
 
 def test_layered_preset_is_the_default_with_late_priorities():
