@@ -283,10 +283,10 @@ PRESETS["default"] = replace(
 
 #: ``"layered"``: the default with the layered blend (``kernels.blending``), its priorities
 #: trained over the last 30 % of the steps only, after density control has placed the
-#: footprints. It gained on all six meshes measured (+0.07..+2.84 dB surface, +0.15..+3.34 dB
-#: paper views; docs/fitting.md, eleventh pass) but writes ``.hkt`` versions 5/6, which a
-#: reader of ALGORITHM.md §5 alone cannot score right (blub: 44.95 dB read as fitted, 39.38
-#: with the priorities dropped), so it is a named choice and not the default.
+#: footprints. Over the default (σ_B 0.03) it gained on spot, bob and CesiumMan (+0.55..+1.07
+#: dB) and lost on blub (−0.90; docs/fitting.md, eleventh pass), and it writes ``.hkt``
+#: versions 5/6, which a reader of ALGORITHM.md §5 alone cannot score right (blub at σ_B 0.05:
+#: 44.95 dB read as fitted, 39.38 with the priorities dropped): a named choice, not the default.
 PRESETS["layered"] = replace(
     PRESETS["default"],
     kernel=replace(PRESETS["default"].kernel, blend="layered"),
