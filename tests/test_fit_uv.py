@@ -232,21 +232,44 @@ def test_presets_are_the_two_configurations_of_algorithm_md():
         fit_preset("nope")
 
 
+def _differing(base: FitParams, other: FitParams) -> dict:
+    """The fields where ``other`` differs from ``base``, with ``other``'s values."""
+    from dataclasses import fields
+
+    return {
+        f.name: getattr(other, f.name)
+        for f in fields(FitParams)
+        if getattr(other, f.name) != getattr(base, f.name)
+    }
+
+
+def test_api_choices_are_the_engines():
+    """The API schema spells the presets and blends out (it does not import the engine);
+    they must stay the engine's own, so a new preset cannot be missing from the API."""
+    from typing import get_args
+
+    from hktex_server.api.schemas import FitParamsIn
+
+    from hktex_engine.config import BLENDS, PRESETS
+
+    def choices(name: str) -> set:
+        (literal, _none) = get_args(FitParamsIn.model_fields[name].annotation)
+        return set(get_args(literal))
+
+    assert choices("preset") == set(PRESETS)
+    assert choices("blend") == set(BLENDS)
+
+
 def test_default_preset_is_later_with_only_the_measured_changes():
     """The product's default differs from the authors' later configuration in exactly the
     fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth and eleventh
     passes), and `later` keeps their rates and their σ_B."""
-    from dataclasses import fields, replace
+    from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS
 
     later, default = PRESETS["later"], PRESETS[DEFAULT_PRESET]
-    changed = {
-        f.name: getattr(default, f.name)
-        for f in fields(FitParams)
-        if getattr(default, f.name) != getattr(later, f.name)
-    }
-    assert changed == {
+    assert _differing(later, default) == {
         "polish_colors": True,
         "sampling": "error",
         "lr_sharpness": 0.2,
@@ -260,15 +283,12 @@ def test_default_preset_is_later_with_only_the_measured_changes():
 def test_layered_preset_is_the_default_with_late_priorities():
     """'layered' differs from the default in exactly the blend and the priorities' start, and
     the flat mapping the CLI and the API pass selects it by name."""
-    from dataclasses import fields, replace
+    from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
     default, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
-    changed = {
-        f.name for f in fields(FitParams) if getattr(default, f.name) != getattr(layered, f.name)
-    }
-    assert changed == {"kernel", "priority_start"}
+    assert set(_differing(default, layered)) == {"kernel", "priority_start"}
     assert layered.kernel == replace(default.kernel, blend="layered")
     assert layered.priority_start == 0.7 and default.kernel.blend == "paper"
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
