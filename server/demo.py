@@ -489,6 +489,7 @@ def run_demo(args: argparse.Namespace) -> dict:
                     notes.append(f"no {what} render: {exc}")
                 if picture is not None:
                     (out / name).write_bytes(picture)
+        history = _recorded_curve(kernelset.metrics) or history
         if _loss_curve_png(history, out / "loss_curve.png") is None:
             notes.append("no loss curve: the fit reported no loss values")
         summary = _summary(
@@ -541,6 +542,17 @@ def _bake_layers(client: Any, ks_id: str, out: Path, notes: list[str]) -> dict |
     except HKTexAPIError as exc:
         notes.append(f"no baked layers: {exc}")
         return None
+
+
+def _recorded_curve(metrics: dict) -> list[tuple[int, float]]:
+    """The fit's whole loss curve as the kernel set's record keeps it (``loss_curve``: one
+    mean per run of steps). Preferred over the event stream's points, which arrive at most
+    once a second and so miss all of a fit shorter than that; [] for a record without one."""
+    curve = metrics.get("loss_curve") if isinstance(metrics, dict) else None
+    if not isinstance(curve, list):
+        return []
+    pairs = [p for p in curve if isinstance(p, list | tuple) and len(p) == 2]
+    return [(int(s), float(v)) for s, v in pairs if isinstance(v, int | float)]
 
 
 def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None:
@@ -600,7 +612,8 @@ def _summary(
             "file_bytes": hkt.stat().st_size,
             "raw_bytes": hkt_bytes["raw"],
             "zip_bytes": hkt_bytes["zip"],
-            "fit_metrics": kernelset.metrics,
+            # the curve is the summary's own "loss_curve"; one copy is enough
+            "fit_metrics": {k: v for k, v in kernelset.metrics.items() if k != "loss_curve"},
         },
         "texture_png_bytes": texture.stat().st_size,
         "quality": quality,

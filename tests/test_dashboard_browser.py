@@ -290,6 +290,10 @@ def test_dashboard_upload_fit_progress_viewer_cancel(service, browser, assets, t
         ),
     )
     pictures = browser.find_element(By.ID, "pictures")
+    # the curve is the record's (every step), not the few points this tab happened to see
+    curve = browser.find_element(By.ID, "pic-curve")
+    _wait(browser, "the loss curve", lambda d: curve.get_attribute("data-source") == "record")
+    assert curve.find_elements(By.CSS_SELECTOR, "path") and "step 600" in curve.text
     browser.execute_script("arguments[0].scrollIntoView()", pictures)
     shot(browser, tmp_path / "5_pictures.png", element=pictures)
 

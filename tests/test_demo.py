@@ -57,10 +57,13 @@ def test_demo_end_to_end_on_tiny_settings(tmp_path: Path) -> None:
     for name in names + ("uv_error.png", "loss_curve.png", "render_error_map.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert (tmp_path / "render_kernels.png").read_bytes()[:4] == b"\x89PNG"
+    # the curve is the record's, every step of the fit, not the few progress events
+    assert [p[0] for p in summary["loss_curve"]] == list(range(1, 21))
+    assert "loss_curve" not in summary["kernelset"]["fit_metrics"]
 
 
 def test_demo_verdict_is_honest_and_loss_curve_draws(tmp_path: Path) -> None:
-    from hktex_server.demo import _loss_curve_png, _verdict
+    from hktex_server.demo import _loss_curve_png, _recorded_curve, _verdict
     from PIL import Image
 
     baselines = [
@@ -73,6 +76,8 @@ def test_demo_verdict_is_honest_and_loss_curve_draws(tmp_path: Path) -> None:
     better = _verdict(1200, 26.0, baselines)
     assert "1.00 dB better" in better and "No baseline of equal or fewer bytes" in better
     assert _loss_curve_png([(1, 0.1)], tmp_path / "one.png") is None
+    assert _recorded_curve({"loss_curve": [[10, 0.5], [20, 0.25]]}) == [(10, 0.5), (20, 0.25)]
+    assert _recorded_curve({}) == [] and _recorded_curve({"loss_curve": "x"}) == []
     curve = _loss_curve_png([(s, 1.0 / s) for s in range(1, 50)], tmp_path / "c.png")
     img = Image.open(curve)
     assert img.size == (720, 400) and len(np.unique(np.asarray(img).reshape(-1, 3), axis=0)) > 2

@@ -8,7 +8,7 @@ import torch
 
 from hktex_engine.config import FitParams
 from hktex_engine.errors import Cancelled
-from hktex_engine.fitting.loop import CheckpointError, latest_checkpoint, run_fit
+from hktex_engine.fitting.loop import CheckpointError, latest_checkpoint, loss_curve, run_fit
 from tests.fitting_standins import FlatTracer, ToyModel, ToyObjective, flat_patch
 
 
@@ -107,3 +107,18 @@ def _fake_clock():
         return t[0]
 
     return clock
+
+
+def test_loss_curve_is_chunk_means_counted_back_from_the_last_step():
+    # 10 losses of a fit resumed at step 90: steps 91..100
+    losses = [float(v) for v in range(10)]
+    assert loss_curve(losses, 100, max_points=20) == [[91 + i, float(i)] for i in range(10)]
+    # 4 points: runs of 3, 3, 2, 2 steps, each point at its run's last step, its mean
+    assert loss_curve(losses, 100, max_points=4) == [[93, 1.0], [96, 4.0], [98, 6.5], [100, 8.5]]
+    many = np.random.default_rng(0).random(5003)
+    curve = np.asarray(loss_curve(list(many), 5003))
+    assert curve.shape == (200, 2) and curve[-1, 0] == 5003
+    # equal-weight means of a partition: their size-weighted mean is the overall mean
+    sizes = np.diff(np.concatenate([[0], curve[:, 0]]))
+    assert np.isclose((curve[:, 1] * sizes).sum() / sizes.sum(), many.mean())
+    assert loss_curve([], 7) == []

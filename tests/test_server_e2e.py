@@ -83,6 +83,13 @@ def test_upload_spectra_fit_query_download(tmp_path, textured):
         ks_id = done["result"]["kernelset_id"]
         ks = c.get(f"/v1/kernelsets/{ks_id}").json()
         assert ks["n_kernels"] > 0 and ks["bytes"] > 0
+        # the whole loss curve, though progress was reported at most once a second
+        curve = ks["metrics"]["loss_curve"]
+        steps = done["progress"]["total"]
+        assert len(curve) == min(steps, 200) and curve[-1][0] == steps
+        assert all(a[0] < b[0] for a, b in zip(curve, curve[1:], strict=False))
+        listed = c.get("/v1/kernelsets").json()["items"]  # lists stay small: no curves
+        assert [k["id"] for k in listed] == [ks_id] and "loss_curve" not in listed[0]["metrics"]
 
         hkt = tmp_path / "k.hkt"
         hkt.write_bytes(c.get(f"/v1/kernelsets/{ks_id}/file").content)

@@ -91,6 +91,28 @@ class LoopResult:
         return self.steps_run / self.seconds if self.seconds > 0 else float("nan")
 
 
+LOSS_CURVE_POINTS = 200
+
+
+def loss_curve(
+    losses: list[float], last_step: int, max_points: int = LOSS_CURVE_POINTS
+) -> list[list[float]]:
+    """``[step, loss]`` pairs for a record or a plot: each the mean loss over one of at most
+    ``max_points`` runs of consecutive steps, at the run's last step.
+
+    Why this exists: progress reaches a client at most once a second, so a fit faster than
+    that (a small test, a fast GPU) reports one loss, and a long one reports thousands of
+    raw, noisy values. A stored curve of means has a fixed size and keeps the trend. The
+    steps count back from ``last_step``: a resumed fit's ``losses`` hold only the steps it ran.
+    """
+    values = np.asarray(losses, dtype=np.float64)
+    if values.size == 0:
+        return []
+    first = int(last_step) - values.size + 1
+    chunks = np.array_split(np.arange(values.size), min(int(max_points), values.size))
+    return [[first + int(c[-1]), float(values[c].mean())] for c in chunks]
+
+
 @contextlib.contextmanager
 def _deterministic(enabled: bool) -> Iterator[None]:
     """``torch.use_deterministic_algorithms`` (warn only) while the loop runs, when ``enabled``;

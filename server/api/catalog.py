@@ -42,7 +42,9 @@ def list_kernelsets(
         .limit(limit)
     )
     with svc.db.read() as s:
-        return KernelSetList(items=[kernelset_record(r) for r in s.execute(q).scalars()])
+        return KernelSetList(
+            items=[kernelset_record(r, loss_curve=False) for r in s.execute(q).scalars()]
+        )
 
 
 @router.get("/spectra", response_model=SpectraList, responses=ERRORS)

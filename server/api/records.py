@@ -90,7 +90,12 @@ def job_record(row: JobRow) -> schemas.JobRecord:
     )
 
 
-def kernelset_record(row: KernelSetRow) -> schemas.KernelSetRecord:
+def kernelset_record(row: KernelSetRow, loss_curve: bool = True) -> schemas.KernelSetRecord:
+    """The API's view of a row. Lists pass ``loss_curve=False``: the curve (up to 200 pairs,
+    ~5 KB) is for one set's page, and a dashboard polls its list every few seconds."""
+    metrics = dict(row.metrics or {})
+    if not loss_curve:
+        metrics.pop("loss_curve", None)
     return schemas.KernelSetRecord(
         id=row.id,
         job_id=row.job_id,
@@ -98,7 +103,7 @@ def kernelset_record(row: KernelSetRow) -> schemas.KernelSetRecord:
         spectra_id=row.spectra_id,
         n_kernels=row.n_kernels,
         bytes=row.bytes,
-        metrics=row.metrics or {},
+        metrics=metrics,
         manifest=row.manifest or {},
         created_at=row.created_at,
     )

@@ -130,6 +130,7 @@ def fit_params(raw: dict[str, Any]):
 
 
 def run_fit(ctx: TaskContext) -> Outcome:
+    from hktex_engine.fitting.loop import loss_curve
     from hktex_engine.geometry.mesh import load_mesh
     from hktex_engine.kernels.hkt import save_hkt
     from hktex_engine.spectra.grid import load_spectra
@@ -172,6 +173,9 @@ def run_fit(ctx: TaskContext) -> Outcome:
     rel, _digest, size = store.publish_file(tmp, "kernelsets", ".hkt")
     kernelset_id = f"kst_{job.id.removeprefix('job_')}"
     metrics = _json_safe(dict(result.metrics or {}))
+    # The record, not the .hkt: the curve would add bytes to every file and no reader needs it.
+    last_step = int(metrics.get("steps") or len(result.losses))
+    metrics["loss_curve"] = loss_curve(result.losses, last_step)
     n_kernels = len(result.kernelset)
     ks = result.kernelset
     manifest = _json_safe(

@@ -275,6 +275,24 @@ function drawCurve(node, pts) {
   label(pad + 4, h - pad - 6, fmt(10 ** c.y0, 3));
 }
 
+// The fit's whole curve as its record keeps it (one mean per run of steps); the points this
+// tab saw while the job ran are the fallback (a set fitted before curves were recorded).
+async function showCurve(id) {
+  const ks = S.data.kernelsets.find((k) => k.id === id);
+  let pts = [];
+  try {
+    const rec = await getJSON(`/v1/kernelsets/${id}`);
+    const curve = (rec.metrics || {}).loss_curve;
+    if (Array.isArray(curve)) pts = curve.filter((p) => Array.isArray(p) && p.length === 2);
+  } catch (e) {
+    if (e instanceof AuthError) throw e;
+  }
+  const source = pts.length >= 2 ? "record" : "tab";
+  if (source === "tab") pts = (ks && S.curves[ks.job_id]) || [];
+  $("pic-curve").dataset.source = source;
+  drawCurve($("pic-curve"), pts);
+}
+
 // ------------------------------------------------------------------ live progress (SSE)
 
 async function follow(jobId) {
@@ -460,8 +478,7 @@ async function showPictures(id, bake) {
     img.closest("figure").hidden = !bake.layers.includes(layer);
     if (bake.layers.includes(layer)) img.src = S.viewer.layers[layer];
   }
-  const ks = S.data.kernelsets.find((k) => k.id === id);
-  drawCurve($("pic-curve"), (ks && S.curves[ks.job_id]) || []);
+  await showCurve(id);
   $("pic-render").closest("figure").hidden = true;
   say("pictures-msg", "Rendering a 512² preview on the service…");
   try {
