@@ -190,11 +190,12 @@ def run_one(
     name, mesh, spectra, label, over, curve, eval_f, eval_b, target, pictures, save
 ) -> dict:
     preset = over.pop("preset")
-    kernel = over.pop("kernel", None)  # a JSON object: KernelConfig fields over the preset's
+    # JSON objects: KernelConfig / DensityRules fields over the preset's own
+    nested = {key: over.pop(key) for key in ("kernel", "density") if over.get(key)}
     params = fit_preset(preset, **over)
-    if kernel:
-        params = replace(params, kernel=replace(params.kernel, **kernel))
-        over["kernel"] = kernel
+    for key, fields in nested.items():
+        params = replace(params, **{key: replace(getattr(params, key), **fields)})
+        over[key] = fields
     t0 = time.perf_counter()
     res = fit_uv(mesh, spectra, params)
     wall = time.perf_counter() - t0

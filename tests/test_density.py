@@ -279,3 +279,60 @@ def test_step_sum_statistics_of_the_later_configuration():
     assert np.allclose(
         ctl.acc["rho_sum"].numpy() / ctl.window_steps["prune"], [0.7, 1.25, 0.6, 0.7]
     )
+
+
+def test_clones_at_error_go_to_each_parents_worst_point():
+    """``clone_at="error"``: per kernel, the window's point of largest error share (brute
+    force over the pairs below), ties to the first pair; the clone is centred there."""
+    from hktex_engine.config import DensityRules
+
+    v, f = flat_patch(5)
+    model = ToyModel(v, f, np.arange(4), np.full((4, 3), 1 / 3))
+    rules = DensityRules(clone_at="error", error_threshold=0.0, max_growth=1.0)
+    ctl, opt = _controller(model, v, f, FlatTracer(v, f), density=rules, max_kernels=8)
+    rng = np.random.default_rng(3)
+    batches = []
+    for step in (2, 3, 4):  # inside the densify window of the event at step 5
+        topk = torch.as_tensor(rng.integers(-1, 4, (6, 3)))
+        topk[0] = torch.tensor([0, 0, 1])  # kernel 0 twice in one row: equal shares, a tie
+        rho = torch.as_tensor(rng.random((6, 3)), dtype=DT)
+        err = torch.as_tensor(rng.random(6), dtype=DT)
+        faces = torch.as_tensor(rng.integers(0, len(f), 6))
+        bary = torch.as_tensor(rng.dirichlet(np.ones(3), 6), dtype=DT)
+        ctl.step = step
+        ctl.record(PointStats(err, topk, rho, face_ids=faces, bary=bary))
+        batches.append((topk, rho, err, faces, bary))
+    best = {}  # kernel -> (share, face, bary): strictly larger wins, so the first pair ties
+    for topk, rho, err, faces, bary in batches:
+        for p in range(6):
+            ks, rs = topk[p].tolist(), rho[p].tolist()
+            tot = sum(r for k, r in zip(ks, rs, strict=True) if k >= 0 and r > 0)
+            for k, r in zip(ks, rs, strict=True):
+                if k >= 0 and r > 0 and err[p].item() * r / tot > best.get(k, (0.0,))[0]:
+                    best[k] = (err[p].item() * r / tot, int(faces[p]), bary[p].numpy())
+    for k, (share, face, b) in best.items():
+        assert np.isclose(ctl.acc["worst_err"][k].item(), share)
+        assert ctl.acc["worst_loc"][k, 0].item() == face
+        assert np.allclose(ctl.acc["worst_loc"][k, 1:].numpy(), b)
+    with torch.no_grad():
+        model.threshold.fill_(0.95)  # small kernels: every one chosen is cloned
+    assert ctl.act(5, model, opt)
+    n_new = len(model.face_ids) - 4
+    assert n_new == len(best)
+    order = torch.argsort(_mean_errors(batches), descending=True, stable=True)
+    for i, k in enumerate(order[:n_new].tolist()):
+        assert int(model.face_ids[4 + i]) == best[k][1]
+        assert np.allclose(model.bary[4 + i].detach().numpy(), best[k][2])
+        assert torch.equal(model.colors[4 + i], model.colors[k])  # the rest is the parent's
+    assert "worst_loc" not in ctl.acc  # reset with the window's other statistics
+
+
+def _mean_errors(batches) -> torch.Tensor:
+    """Each kernel's mean error share over the batches (the "mean" statistics)."""
+    s, w = torch.zeros(4, dtype=DT), torch.zeros(4, dtype=DT)
+    for topk, rho, err, _, _ in batches:
+        valid = (topk >= 0) & (rho > 0)
+        share = rho * valid / (rho * valid).sum(1, keepdim=True).clamp_min(1e-30)
+        s.index_add_(0, topk.clamp_min(0).reshape(-1), (err[:, None] * share).reshape(-1))
+        w.index_add_(0, topk.clamp_min(0).reshape(-1), share.reshape(-1))
+    return s / w
