@@ -112,9 +112,6 @@ class DensityRules:
     points of each step, then averaged over the window's steps, so they grow with points
     per step and with a kernel's footprint). ``prune_at`` lists explicit prune fractions
     (§7b: 0.2 and 0.4) instead of the ``prune_from``/``until``/``every`` range.
-    ``clone_at`` places a clone: ``"parent"`` (ALGORITHM.md §7: an exact copy) or
-    ``"error"`` (a copy centred on the point of the window where the parent's share of the
-    error was largest; the parent itself stays).
     """
 
     prune_from: float = 0.2
@@ -134,14 +131,11 @@ class DensityRules:
     split_offset: float = 0.2
     split_shrink: float = 1.6
     stats: Literal["mean", "step_sum"] = "mean"
-    clone_at: Literal["parent", "error"] = "parent"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "prune_at", tuple(float(f) for f in self.prune_at))
         if self.stats not in ("mean", "step_sum"):
             raise ValueError("density stats must be 'mean' or 'step_sum'")
-        if self.clone_at not in ("parent", "error"):
-            raise ValueError("density clone_at must be 'parent' or 'error'")
 
 
 @dataclass(frozen=True)

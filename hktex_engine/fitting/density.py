@@ -161,13 +161,10 @@ class DensityController:
         return self.enabled and nxt is not None and self.step + 1 > nxt - self.window
 
     def _ensure(self, n: int, device: torch.device) -> None:
-        shapes = {"hits": (), "rho_sum": (), "err_sum": (), "err_weight": ()}
-        if self.rules.clone_at == "error":
-            shapes |= {"worst_err": (), "worst_loc": (4,)}  # loc: face id, then barycentrics
-        for key, tail in shapes.items():
+        for key in ("hits", "rho_sum", "err_sum", "err_weight"):
             t = self.acc.get(key)
             if t is None or t.shape[0] != n:
-                self.acc[key] = torch.zeros((n, *tail), dtype=torch.float64, device=device)
+                self.acc[key] = torch.zeros(n, dtype=torch.float64, device=device)
 
     @torch.no_grad()
     def record(self, stats) -> None:
@@ -199,30 +196,6 @@ class DensityController:
             err = stats.l1_error.detach().to(torch.float64)[:, None] * w
             self.acc["err_sum"].index_add_(0, safe, (err * pw).reshape(-1))
             self.acc["err_weight"].index_add_(0, safe, (w * pw).reshape(-1))
-            if self.rules.clone_at == "error" and stats.face_ids is not None:
-                self._track_worst((err * pw * valid).reshape(-1), safe, stats)
-
-    def _track_worst(self, pair_err: torch.Tensor, safe: torch.Tensor, stats) -> None:
-        """Keep, per kernel, the window's point where its share of the error was largest.
-
-        ``pair_err`` is one value per (point, candidate) pair, 0 for invalid pairs. Ties go
-        to the lowest pair index, so the choice is deterministic (and resume bit-identical).
-        """
-        n, k = self.n_kernels, stats.topk.shape[1]
-        worst = torch.zeros(n, dtype=pair_err.dtype, device=pair_err.device)
-        worst.scatter_reduce_(0, safe, pair_err, "amax")
-        hit = (pair_err > 0) & (pair_err == worst[safe])
-        pairs = torch.arange(pair_err.numel(), device=pair_err.device)
-        first = torch.full((n,), pair_err.numel(), dtype=torch.long, device=pair_err.device)
-        first.scatter_reduce_(0, safe[hit], pairs[hit], "amin")
-        better = torch.nonzero((first < pair_err.numel()) & (worst > self.acc["worst_err"]))
-        kern = better.squeeze(1)
-        point = first[kern] // k
-        self.acc["worst_err"][kern] = worst[kern]
-        loc = torch.cat(
-            [stats.face_ids[point, None].to(torch.float64), stats.bary[point].to(torch.float64)], 1
-        )
-        self.acc["worst_loc"][kern] = loc.detach()
 
     @property
     def n_kernels(self) -> int:
@@ -247,7 +220,7 @@ class DensityController:
             self.window_steps["prune"] = 0
         if step in self.densify_steps:
             changed |= self._densify(model, opt)
-            for key in ("err_sum", "err_weight", "worst_err", "worst_loc"):
+            for key in ("err_sum", "err_weight"):
                 self.acc.pop(key, None)
             self.window_steps["densify"] = 0
         self._n = int(model.face_ids.shape[0])
@@ -259,7 +232,8 @@ class DensityController:
         resize_model(model, keep, new_rows)
         opt.resize(keep, n_new)
         for key, t in list(self.acc.items()):
-            self.acc[key] = torch.cat([t[keep], t.new_zeros((n_new, *t.shape[1:]))])
+            zeros = torch.zeros(n_new, dtype=t.dtype, device=t.device)
+            self.acc[key] = torch.cat([t[keep], zeros])
         self._n = int(model.face_ids.shape[0])
         self.events.append({"step": self.step, "kind": kind, "before": n_before, "after": self._n})
 
@@ -317,8 +291,6 @@ class DensityController:
         """
         rows = {name: getattr(model, name).detach() for name in KERNEL_ATTRIBUTES}
         out = {name: t[clone] for name, t in rows.items()}
-        if self.rules.clone_at == "error" and "worst_loc" in self.acc:
-            out["face_ids"], out["bary"] = self._at_worst(clone, out["face_ids"], out["bary"])
         if split.numel() == 0:
             return out
         eps = rows["threshold"][split]
@@ -347,18 +319,6 @@ class DensityController:
         shrunk = 1.0 - (1.0 - eps) / self.rules.split_shrink
         children["threshold"] = torch.cat([shrunk, shrunk])
         return {name: torch.cat([out[name], children[name]]) for name in out}
-
-    def _at_worst(self, clone: torch.Tensor, faces: torch.Tensor, bary: torch.Tensor):
-        """Clones' centres moved to their parents' worst points (where one was recorded).
-
-        Why: an exact copy starts where its parent already is and only separates as far as
-        the centres' learning rate carries it; the parent's worst point is where a second
-        kernel is wanted (a feature the parent's footprint overflows or misses)."""
-        seen = self.acc["worst_err"][clone] > 0
-        loc = self.acc["worst_loc"][clone]
-        faces = torch.where(seen, loc[:, 0].round().to(faces.dtype), faces)
-        bary = torch.where(seen[:, None], loc[:, 1:].to(bary.dtype), bary)
-        return faces, bary
 
     # --- checkpoint support ------------------------------------------------------------
 
