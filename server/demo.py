@@ -556,8 +556,9 @@ def _recorded_curve(metrics: dict) -> list[tuple[int, float]]:
 
 
 def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None:
-    """The fit's loss against step (log scale) as a 720x400 PNG, drawn with Pillow: the raw
-    per-step loss thin and light (it is a stochastic estimate), a running mean over it."""
+    """The fit's loss against step (log scale) as a 720x400 PNG, drawn with Pillow: the loss
+    as given (per step or per run of steps: a stochastic estimate) thin and light, a centred
+    running mean over it (centred, so it does not lag the curve it smooths)."""
     from PIL import Image, ImageDraw, ImageFont
 
     path.unlink(missing_ok=True)
@@ -583,14 +584,14 @@ def _loss_curve_png(history: list[tuple[int, float]], path: Path) -> Path | None
     mean = np.convolve(logs, np.ones(window) / window, mode="valid")
     d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill=(150, 160, 170))
     d.line(list(zip(xs.tolist(), ys(logs), strict=True)), fill=(246, 190, 160), width=1)
-    mx = xs[window - 1 :].tolist()
+    mx = xs[(window - 1) // 2 :][: len(mean)].tolist()
     d.line(list(zip(mx, ys(mean), strict=True)), fill=(194, 65, 12), width=3)
     grey = (60, 60, 60)
     d.text((left, h - bottom + 10), f"step {int(x0)}", fill=grey, font=font)
     d.text((w - right, h - bottom + 10), f"step {int(x1)}", fill=grey, font=font, anchor="ra")
     d.text((left - 8, top), f"{10**y1:.3g}", fill=grey, font=font, anchor="ra")
     d.text((left - 8, h - bottom), f"{10**y0:.3g}", fill=grey, font=font, anchor="rd")
-    title = f"training loss (log scale); thick: running mean of {window}"
+    title = f"training loss (log scale); thick: centred running mean of {window}"
     d.text((left, 12), title, fill=(30, 30, 30), font=font)
     img.save(path)
     return path

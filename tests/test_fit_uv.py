@@ -274,7 +274,7 @@ def test_default_preset_is_later_with_only_the_measured_changes():
         "sampling": "error",
         "lr_sharpness": 0.2,
         "lr_threshold": 0.0055,
-        "kernel": replace(later.kernel, sigma_b=0.03),
+        "kernel": replace(later.kernel, sigma_b=0.025),
     }
     assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
     assert later.kernel.sigma_b == 0.05
