@@ -78,6 +78,8 @@ def test_demo_verdict_is_honest_and_loss_curve_draws(tmp_path: Path) -> None:
     assert _loss_curve_png([(1, 0.1)], tmp_path / "one.png") is None
     assert _recorded_curve({"loss_curve": [[10, 0.5], [20, 0.25]]}) == [(10, 0.5), (20, 0.25)]
     assert _recorded_curve({}) == [] and _recorded_curve({"loss_curve": "x"}) == []
+    # a diverged step's loss is stored as null (the record's JSON has no NaN): skipped
+    assert _recorded_curve({"loss_curve": [[1, 1.0], [2, None], [3, 2.0]]}) == [(1, 1.0), (3, 2.0)]
     curve = _loss_curve_png([(s, 1.0 / s) for s in range(1, 50)], tmp_path / "c.png")
     img = Image.open(curve)
     assert img.size == (720, 400) and len(np.unique(np.asarray(img).reshape(-1, 3), axis=0)) > 2

@@ -175,7 +175,7 @@ def run_fit(ctx: TaskContext) -> Outcome:
     metrics = _json_safe(dict(result.metrics or {}))
     # The record, not the .hkt: the curve would add bytes to every file and no reader needs it.
     last_step = int(metrics.get("steps") or len(result.losses))
-    metrics["loss_curve"] = loss_curve(result.losses, last_step)
+    metrics["loss_curve"] = _json_safe(loss_curve(result.losses, last_step))  # NaN -> null
     n_kernels = len(result.kernelset)
     ks = result.kernelset
     manifest = _json_safe(

@@ -283,7 +283,8 @@ async function showCurve(id) {
   try {
     const rec = await getJSON(`/v1/kernelsets/${id}`);
     const curve = (rec.metrics || {}).loss_curve;
-    if (Array.isArray(curve)) pts = curve.filter((p) => Array.isArray(p) && p.length === 2);
+    const finite = (p) => Array.isArray(p) && p.length === 2 && typeof p[1] === "number";
+    if (Array.isArray(curve)) pts = curve.filter(finite);  // a diverged step's loss is null
   } catch (e) {
     if (e instanceof AuthError) throw e;
   }
