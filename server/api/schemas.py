@@ -222,7 +222,12 @@ class KernelSetRecord(BaseModel):
     spectra_id: str
     n_kernels: int
     bytes: int = Field(description="size of the .hkt file as stored")
-    metrics: dict[str, Any] = Field(default_factory=dict)
+    metrics: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the fit's metrics (surface_psnr, kernels, steps, bytes_*, ...); "
+        "GET /v1/kernelsets/{id} adds loss_curve: at most 200 [step, mean loss] pairs "
+        "over the whole fit (null where a step's loss was not finite); lists leave it out",
+    )
     manifest: dict[str, Any] = Field(default_factory=dict)
     created_at: float
 
