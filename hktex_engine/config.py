@@ -271,7 +271,8 @@ DEFAULT_LR_THRESHOLD = 0.0055
 #: blurred caps with ε and k pinned at their bounds. At 0.03 all six meshes gained
 #: (+0.28..+3.81 dB surface, views too; docs/fitting.md, eleventh pass); 0.025 gained again on
 #: five of six (blub +0.98 over two seeds, CesiumMan +0.55 over three; spot −0.16 over two)
-#: and 0.02 lost on both meshes tried (twelfth pass). All within §4-5 as written: σ_B is in every file.
+#: and 0.02 lost on both meshes tried (twelfth pass). All within §4-5 as written: σ_B is in
+#: every file.
 DEFAULT_SIGMA_B = 0.025
 PRESETS["default"] = replace(
     PRESETS["later"],
