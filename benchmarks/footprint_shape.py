@@ -34,7 +34,7 @@ from _machine import machine_info, machine_line
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from hktex_engine.config import DEFAULT_SIGMA_B, SpectralConfig, fit_preset
+from hktex_engine.config import DEFAULT_SIGMA_B, KernelConfig, SpectralConfig, fit_preset
 from hktex_engine.evaluation.metrics import surface_samples
 from hktex_engine.geometry.mesh import load_mesh
 from hktex_engine.geometry.sampling import points_from_barycentric
@@ -46,6 +46,8 @@ from hktex_engine.spectra.interpolation import SpectralField
 DARK = 0.12
 #: sample points closer than this (3-D, normalised mesh) belong to one feature
 LINK = 0.01
+#: stands for sigma_B = inf: w = 1 everywhere on a normalised mesh (d_B is below ~1 there)
+INFINITE_SIGMA_B = 1e6
 
 
 def shape(points: np.ndarray) -> dict:
@@ -122,9 +124,9 @@ def main() -> int:
         for sigma_b in (DEFAULT_SIGMA_B, 0.05, float("inf")):
             for threshold in (0.3, 0.5):
                 for eta in (1.0, 30.0, 200.0):
-                    config = kernel.__class__(
+                    config = KernelConfig(
                         diffusion_time=kernel.diffusion_time,
-                        sigma_b=1e6 if np.isinf(sigma_b) else sigma_b,
+                        sigma_b=INFINITE_SIGMA_B if np.isinf(sigma_b) else sigma_b,
                         k_search=1,
                         k_blend=1,
                     )
