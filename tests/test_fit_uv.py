@@ -294,6 +294,21 @@ def test_layered_preset_is_the_default_with_late_priorities():
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
 
 
+def test_dense_preset_is_the_default_with_a_lower_densification_threshold():
+    """'dense' differs from the default in the densification threshold alone (so its files
+    are plain §4-5 sets), and the CLI's and the API's flat mapping selects it by name."""
+    from dataclasses import replace
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
+
+    default, dense = PRESETS[DEFAULT_PRESET], PRESETS["dense"]
+    assert set(_differing(default, dense)) == {"density"}
+    assert dense.density == replace(default.density, error_threshold=0.012)
+    assert default.density.error_threshold > dense.density.error_threshold
+    assert dense.kernel.blend == "paper"
+    assert fit_params_from({"preset": "dense", "steps": 9}) == replace(dense, steps=9)
+
+
 def test_spectra_k_follows_the_preset(monkeypatch, tmp_path):
     """K = 128 by default (measured better than 64 on small features at t = 0.06245, no loss
     elsewhere); the earlier regime asks for 256."""
