@@ -297,10 +297,10 @@ PRESETS["layered"] = replace(
 
 #: ``"dense"``: the default with the densification threshold halved (0.0237 -> 0.012), so more
 #: new kernels go where the error is. Measured with the full fit (docs/fitting.md, thirteenth
-#: pass): blub +0.70 dB over four seeds, spot +0.94, the torus +0.12, bob -0.20, CesiumMan and
-#: marble unchanged (their 5,000-kernel budget binds either way), for 30-70 % more bytes where
-#: the budget does not bind and 1.8-2.4 dB less margin over vertex colours of equal bytes on
-#: spot and bob: fidelity first, bytes second. Its files are plain §4-5 sets any reader scores.
+#: pass): blub +0.70 dB over four seeds, spot +1.04 and bob +0.26 over two, the torus +0.12,
+#: CesiumMan and marble unchanged (their 5,000-kernel budget binds either way), for 30-70 %
+#: more bytes where the budget does not bind and 1.8-2.4 dB less margin over vertex colours of
+#: equal bytes on spot and bob: fidelity first, bytes second. Its files are plain §4-5 sets.
 DENSE_ERROR_THRESHOLD = 0.012
 PRESETS["dense"] = replace(
     PRESETS["default"],

@@ -52,7 +52,7 @@ class FitParamsIn(_Strict):
         description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
         " + error sampling; 'layered' = default + the layered blend, priorities trained"
         " late: sharper, but .hkt versions 5/6; 'dense' = default with the densification"
-        " threshold halved: more kernels, -0.2 to +0.9 dB for 30-70 % more bytes);"
+        " threshold halved: more kernels, +0.1 to +1.0 dB on average for 30-70 % more bytes);"
         " the other fields override it",
     )
     polish_colors: bool | None = Field(
