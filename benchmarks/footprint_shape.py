@@ -25,6 +25,7 @@ import argparse
 import json
 import shlex
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +35,9 @@ from _machine import machine_info, machine_line
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from hktex_engine.config import DEFAULT_SIGMA_B, KernelConfig, SpectralConfig, fit_preset
+from hktex_engine.config import DEFAULT_SIGMA_B, SpectralConfig, fit_preset
 from hktex_engine.evaluation.metrics import surface_samples
-from hktex_engine.geometry.mesh import load_mesh
+from hktex_engine.fitting.optimise import face_unit_normals, theta_in_faces
 from hktex_engine.geometry.sampling import points_from_barycentric
 from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.spectra.grid import SpectraCache
@@ -50,16 +51,18 @@ LINK = 0.01
 INFINITE_SIGMA_B = 1e6
 
 
-def shape(points: np.ndarray) -> dict:
-    """Aspect ratio and semi-axes of a planar-ish point cloud from its second moments."""
+def shape(points: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Aspect ratio and semi-axes of a planar-ish point cloud from its second moments, and
+    its long axis (3-D unit vector)."""
     q = points - points.mean(0)
-    var = np.linalg.eigvalsh(q.T @ q / len(q))[::-1]
-    return {
+    var, vecs = np.linalg.eigh(q.T @ q / len(q))  # ascending
+    long, short = var[2], var[1]
+    summary = {
         "points": len(points),
-        "aspect": float(np.sqrt(var[0] / max(var[1], 1e-300))),
-        "semi_axes": [float(2 * np.sqrt(var[0])), float(2 * np.sqrt(var[1]))],
-        "long_axis": np.linalg.eigh(q.T @ q)[1][:, -1],
+        "aspect": float(np.sqrt(long / max(short, 1e-300))),
+        "semi_axes": [float(2 * np.sqrt(long)), float(2 * np.sqrt(short))],
     }
+    return summary, vecs[:, 2]
 
 
 def features(pts: np.ndarray, dark: np.ndarray, count: int) -> list[np.ndarray]:
@@ -72,15 +75,23 @@ def features(pts: np.ndarray, dark: np.ndarray, count: int) -> list[np.ndarray]:
     return [idx[label == c] for c in np.argsort(np.bincount(label))[::-1][:count]]
 
 
-def theta_along(face_frames: np.ndarray, face: int, axis: np.ndarray, mesh) -> float:
-    """The kernel angle in ``face`` whose direction is closest to ``axis`` (in [0, pi]):
-    theta is measured from the spectra's reference direction ``u_ref`` of the face."""
-    u = np.asarray(face_frames[face], dtype=np.float64)
-    v0, v1, v2 = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[face]]
-    normal = np.cross(v1 - v0, v2 - v0)
-    normal /= np.linalg.norm(normal)
-    w = np.cross(normal, u)
-    return float(np.arctan2(axis @ w, axis @ u) % np.pi)
+def theta_along(spectra, mesh, face: int, axis: np.ndarray) -> float:
+    """The kernel angle in ``face`` of the direction ``axis`` (projected into the face),
+    measured from the spectra's ``u_ref`` as the fit measures it (``theta_in_faces``)."""
+    dt = torch.float64
+    normals = face_unit_normals(
+        torch.as_tensor(np.asarray(mesh.vertices), dtype=dt),
+        torch.as_tensor(np.asarray(mesh.faces)),
+    )
+    n = normals[face]
+    a = torch.as_tensor(axis, dtype=dt)
+    a = a - (a @ n) * n
+    a = a / a.norm()
+    axes = torch.stack([a, torch.linalg.cross(n, a, dim=-1)])[None]  # (1, 2, 3)
+    frames = torch.as_tensor(np.asarray(spectra.face_frames), dtype=dt)
+    face_ids = torch.tensor([face])
+    theta, _ = theta_in_faces(frames, normals, face_ids, axes, torch.zeros(1, dtype=dt))
+    return float(theta[0])
 
 
 def footprint(model_args: dict, field, f, b, pts) -> dict:
@@ -90,24 +101,25 @@ def footprint(model_args: dict, field, f, b, pts) -> dict:
         cand = torch.zeros((len(f), 1), dtype=torch.long)
         rho = model.responses(torch.as_tensor(f), torch.as_tensor(b, dtype=field.dtype), cand)[0]
     inside = rho.numpy()[:, 0] > 0.5
-    out = shape(pts[inside]) if inside.sum() > 10 else {"points": int(inside.sum())}
-    out.pop("long_axis", None)
-    return out
+    return shape(pts[inside])[0] if inside.sum() > 10 else {"points": int(inside.sum())}
 
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).parent))
-    from fidelity import DATA, MESHES
+    from fidelity import add_mesh_file_argument, load_source, mesh_sources
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--mesh", default="blub", choices=sorted(MESHES))
+    ap.add_argument("--mesh", default="blub", help="a shared mesh or a --mesh-file name")
+    add_mesh_file_argument(ap)
     ap.add_argument("--k", type=int, default=128)
     ap.add_argument("--features", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = ap.parse_args()
 
-    obj, tex = MESHES[args.mesh]
-    mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+    sources = mesh_sources(args.mesh_file)
+    if args.mesh not in sources:
+        raise SystemExit(f"unknown mesh {args.mesh!r}; choose from {sorted(sources)}")
+    mesh = load_source(sources[args.mesh])
     spectra = SpectraCache(Path.home() / ".cache/hktex/spectra").get_or_compute(
         mesh, SpectralConfig(angles=7, k=args.k)
     )
@@ -117,15 +129,15 @@ def main() -> int:
     kernel = fit_preset("default").kernel
     rows = []
     for n, members in enumerate(features(pts, target.mean(1) < DARK, args.features)):
-        feat = shape(pts[members])
+        feat, long_axis = shape(pts[members])
         centre = members[np.argmin(np.linalg.norm(pts[members] - pts[members].mean(0), axis=1))]
         near = np.flatnonzero(np.linalg.norm(pts - pts[centre], axis=1) < 4 * feat["semi_axes"][0])
-        theta = theta_along(spectra.face_frames, int(f[centre]), feat.pop("long_axis"), mesh)
+        theta = theta_along(spectra, mesh, int(f[centre]), long_axis)
         for sigma_b in (DEFAULT_SIGMA_B, 0.05, float("inf")):
             for threshold in (0.3, 0.5):
                 for eta in (1.0, 30.0, 200.0):
-                    config = KernelConfig(
-                        diffusion_time=kernel.diffusion_time,
+                    config = replace(
+                        kernel,
                         sigma_b=INFINITE_SIGMA_B if np.isinf(sigma_b) else sigma_b,
                         k_search=1,
                         k_blend=1,

@@ -35,7 +35,6 @@ from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.diagnostics import edge_flat_split
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.fitting.uv import evaluate_albedo
-from hktex_engine.geometry.mesh import load_mesh
 from hktex_engine.kernels.hkt import load_hkt
 from hktex_engine.kernels.model import SHARPNESS_RANGE, HeatKernelModel, KernelSet
 from hktex_engine.spectra.grid import SpectraCache
@@ -72,10 +71,11 @@ def score(mesh, field: SpectralField, ks: KernelSet, points: tuple) -> dict:
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).parent))
-    from fidelity import DATA, MESHES
+    from fidelity import add_mesh_file_argument, load_source, mesh_sources
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--mesh", required=True, choices=sorted(MESHES))
+    ap.add_argument("--mesh", required=True, help="a shared mesh or a --mesh-file name")
+    add_mesh_file_argument(ap)
     ap.add_argument("--hkt", required=True, type=Path)
     ap.add_argument("--k", type=int, default=128, help="the spectra's K the set was fitted on")
     ap.add_argument("--sharpness-scale", type=float, nargs="*", default=[])
@@ -84,8 +84,10 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/rescore.jsonl"))
     args = ap.parse_args()
 
-    obj, tex = MESHES[args.mesh]
-    mesh = load_mesh(DATA / obj, texture=(DATA / tex) if tex else None)
+    sources = mesh_sources(args.mesh_file)
+    if args.mesh not in sources:
+        raise SystemExit(f"unknown mesh {args.mesh!r}; choose from {sorted(sources)}")
+    mesh = load_source(sources[args.mesh])
     cache = SpectraCache(Path.home() / ".cache/hktex/spectra")
     field = SpectralField(cache.get_or_compute(mesh, SpectralConfig(angles=7, k=args.k)))
     points = surface_samples(mesh, 60_000, 0)
@@ -107,13 +109,14 @@ def main() -> int:
         )
     base = None
     command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
+    machine = machine_info()
     with args.out.open("a") as fh:
         for name, variant in variants:
             row = {"mesh": args.mesh, "set": args.hkt.name, "variant": name}
             row |= score(mesh, field, variant, points)
             base = row["surface_psnr"] if base is None else base
             row["delta_db"] = row["surface_psnr"] - base
-            row["command"], row["machine"] = command, machine_info()
+            row["command"], row["machine"] = command, machine
             fh.write(json.dumps(row) + "\n")
             print(
                 f"{name:45s} {row['surface_psnr']:.2f} dB ({row['delta_db']:+.2f}), "
