@@ -186,7 +186,7 @@ def fit_once(mesh, spectra, seed: int, lr_sigma: float, box: tuple[float, float]
                 np.quantile(sig, [0, 0.1, 0.25, 0.5, 0.75, 0.9, 1]).tolist(),
                 strict=True,
             )
-        ),  # fmt: skip
+        ),
         "at_box_edge": float(np.mean((ratio <= box[0] * 1.001) | (ratio >= box[1] * 0.999))),
         "colour_solve_kept": (res.metrics.get("colour_solve") or {}).get("kept"),
     }
