@@ -103,6 +103,8 @@ class ToyModel(torch.nn.Module):
         self.base_color = torch.nn.Parameter(torch.full((3,), 0.5, dtype=dt))
         # the paper's blend: a priority row that follows the kernels and gets no gradient
         self.priority = torch.nn.Parameter(torch.zeros(n, dtype=dt), requires_grad=False)
+        # sigma_B for every kernel: a log-scale row that follows the kernels, no gradient
+        self.log_sigma = torch.nn.Parameter(torch.zeros(n, dtype=dt), requires_grad=False)
         self.k_blend = k_blend
         self.sigma = sigma
         self.refreshes = 0
@@ -110,7 +112,7 @@ class ToyModel(torch.nn.Module):
     def _rows(self):
         return [
             self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
-            self.priority,
+            self.priority, self.log_sigma,
         ]  # fmt: skip
 
     def centres(self) -> torch.Tensor:
@@ -156,10 +158,23 @@ class ToyModel(torch.nn.Module):
         return self
 
     @torch.no_grad()
-    def append(self, face_ids, bary, theta, eta, threshold, sharpness, colors, priority=None):
+    def append(
+        self,
+        face_ids,
+        bary,
+        theta,
+        eta,
+        threshold,
+        sharpness,
+        colors,
+        priority=None,
+        log_sigma=None,
+    ):
         self.face_ids = torch.cat([self.face_ids, torch.as_tensor(face_ids, dtype=torch.long)])
         if priority is None:
             priority = torch.zeros(len(face_ids), dtype=torch.float64)
+        if log_sigma is None:
+            log_sigma = torch.zeros(len(face_ids), dtype=torch.float64)
         new = [
             bary,
             theta,
@@ -168,6 +183,7 @@ class ToyModel(torch.nn.Module):
             sharpness,
             colors,
             priority,
+            log_sigma,
         ]
         for p, rows in zip(self._rows(), new, strict=True):
             p.data = torch.cat([p.data, torch.as_tensor(rows, dtype=torch.float64)])

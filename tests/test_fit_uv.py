@@ -294,6 +294,19 @@ def test_layered_preset_is_the_default_with_late_priorities():
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
 
 
+def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
+    """'sigma' differs from the default in the kernel config's ``sigma`` alone, and the flat
+    mapping the CLI and the API pass selects it by name."""
+    from dataclasses import replace
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
+
+    default, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
+    assert _differing(default, scaled) == {"kernel": replace(default.kernel, sigma="per_kernel")}
+    assert default.kernel.sigma == "uniform" and not default.kernel.per_kernel_sigma
+    assert fit_params_from({"preset": "sigma", "steps": 9}) == replace(scaled, steps=9)
+
+
 def test_dense_preset_is_the_default_with_a_lower_densification_threshold():
     """'dense' differs from the default in the densification threshold alone (so its files
     are plain §4-5 sets), and the CLI's and the API's flat mapping selects it by name."""

@@ -169,11 +169,12 @@ def _pair_reference(top, dots, blend, emb_y, sigma_b, coef, norm, w, emb_c, thr,
     return out, rho
 
 
-@pytest.mark.parametrize("layered", [False, True])
-def test_pair_blend_against_autograd(layered):
+@pytest.mark.parametrize(("layered", "scaled"), [(False, False), (True, False), (False, True)])
+def test_pair_blend_against_autograd(layered, scaled):
     """Random pairs with every regime present: rho saturated at 1, at 0, in between; sums of
     rho above and below 1; albedo clamped at both ends. The compiled footprints, then the
-    torch blend (either rule), against plain float64 autograd."""
+    torch blend (either rule), against plain float64 autograd; ``scaled``: a sigma per
+    kernel (its gradient too)."""
     g = torch.Generator().manual_seed(7)
     n_k, p, k_c, kk, dim = 40, 300, 6, 12, 5
     top = torch.stack([torch.randperm(n_k, generator=g)[:k_c] for _ in range(p)])
@@ -191,12 +192,15 @@ def test_pair_blend_against_autograd(layered):
     }
     if layered:
         params["prio"] = torch.rand(n_k, generator=g) * 6 - 3
-    emb_y = torch.randn((p, dim), generator=g) * 0.2
     sigma_b = 0.3
+    if scaled:
+        params["sigma"] = sigma_b * torch.exp(torch.rand(n_k, generator=g) * 1.4 - 0.7)
+    emb_y = torch.randn((p, dim), generator=g) * 0.2
     ref_in = {n: v.double().requires_grad_(True) for n, v in params.items()}
     coef64 = coef.double().requires_grad_(True)
+    sigma_pairs = ref_in["sigma"][top] if scaled else sigma_b
     out_r, rho_r = _pair_reference(
-        top, dots.double(), blend.double(), emb_y.double(), sigma_b, coef64, ref_in["norm"],
+        top, dots.double(), blend.double(), emb_y.double(), sigma_pairs, coef64, ref_in["norm"],
         ref_in["w"], ref_in["emb_c"], ref_in["thr"], ref_in["sharp"], ref_in["col"], ref_in["base"],
         ref_in.get("prio"),
     )  # fmt: skip
@@ -207,8 +211,10 @@ def test_pair_blend_against_autograd(layered):
     assert ((out_r == 0) | (out_r == 1)).any() and ((out_r > 0) & (out_r < 1)).any()
     got_in = {n: v.clone().requires_grad_(True) for n, v in params.items()}
     coef32 = coef.clone().requires_grad_(True)
+    ratio = got_in["sigma"] / sigma_b if scaled else None
+    scale = fused_pairs.pair_scales(sigma_b, ratio, n_k)
     rho = fused_pairs.PairResponse.apply(
-        top, dots, blend, emb_y, sigma_b, coef32, got_in["norm"], got_in["w"], got_in["emb_c"],
+        top, dots, blend, emb_y, scale, coef32, got_in["norm"], got_in["w"], got_in["emb_c"],
         got_in["thr"], got_in["sharp"],
     )  # fmt: skip
     prio = got_in["prio"][top] if layered else None

@@ -40,12 +40,14 @@ def make_model(field, kp, config=CONFIG, backend="auto"):
         config=config,
         knn_backend=backend,
         priority=kp.get("priority"),
+        sigma_ratio=kp.get("sigma_ratio"),
     )
 
 
 # ------------------------------------------------------------------ independent reference
 def reference_albedo(spectra, kp, config, face_ids, bary):
-    """Sections 4-5 in numpy, straight from ALGORITHM.md (brute force over all kernels)."""
+    """Sections 4-5 in numpy, straight from ALGORITHM.md (brute force over all kernels);
+    ``kp["sigma_ratio"]``, when present, scales each kernel's sigma_B (our extension)."""
     gt = spectra.grid_theta
     gs = np.log1p(spectra.grid_eta)
     a_n, s_n = len(gt), len(gs)
@@ -72,11 +74,12 @@ def reference_albedo(spectra, kp, config, face_ids, bary):
         e_c = at(emb, kp["face_ids"][j], kp["bary"][j])
         h_c = np.sum(np.exp(-config.diffusion_time * lam) * phi_c * phi_c)
         eps, sharp = kp["threshold"][j], kp["sharpness"][j]
+        sigma = config.sigma_b * (kp["sigma_ratio"][j] if "sigma_ratio" in kp else 1.0)
         for p in range(n_p):
             phi_y = at(phi_vertices, face_ids[p], bary[p])
             h = np.sum(np.exp(-config.diffusion_time * lam) * phi_c * phi_y)
             d2 = np.sum((e_c - at(emb, face_ids[p], bary[p])) ** 2)
-            r = h * np.exp(-d2 / (2 * config.sigma_b**2)) / h_c
+            r = h * np.exp(-d2 / (2 * sigma**2)) / h_c
             num = expit(sharp * (r - eps)) - expit(-sharp * eps)
             den = expit(sharp * (1 - eps)) - expit(-sharp * eps)
             rho[p, j] = min(max(num / den, 0.0), 1.0)

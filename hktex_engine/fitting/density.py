@@ -98,6 +98,7 @@ def resize_model(model: torch.nn.Module, keep: torch.Tensor, new_rows: dict) -> 
         new_rows["sharpness"],
         new_rows["colors"],
         new_rows["priority"],
+        new_rows["log_sigma"],
     )
 
 

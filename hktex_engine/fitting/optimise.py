@@ -45,6 +45,7 @@ ATTRIBUTE_LRS: dict[str, str] = {
     "sharpness": "lr_sharpness",
     "base_color": "lr_base",
     "priority": "lr_priority",
+    "log_sigma": "lr_sigma",
 }
 #: every per-kernel tensor of the model (the centre is face_ids + bary), checkpoint order
 KERNEL_ATTRIBUTES: tuple[str, ...] = (
@@ -56,6 +57,7 @@ KERNEL_ATTRIBUTES: tuple[str, ...] = (
     "sharpness",
     "colors",
     "priority",
+    "log_sigma",
 )
 
 

@@ -203,6 +203,8 @@ def initial_kernelset(
         config_hash=spectra.config_hash,
         # every kernel starts on one layer: the layered blend begins as the paper's
         priority=np.zeros(n) if params.kernel.blend == "layered" else None,
+        # every kernel starts at sigma_B: a per-kernel sigma begins as §4's one
+        sigma_ratio=np.ones(n) if params.kernel.per_kernel_sigma else None,
     )
 
 

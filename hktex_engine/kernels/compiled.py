@@ -208,6 +208,15 @@ def array(t: torch.Tensor) -> np.ndarray:
     return t.numpy() if t.is_contiguous() else np.ascontiguousarray(t.numpy())
 
 
+def row_scales(sigma_b: float, ratio: torch.Tensor | None, n: int) -> np.ndarray:
+    """``2 sigma^2`` per kernel row (float64), the decay's divisor: ``2 sigma_b^2`` for all
+    ``n`` rows (the number the scalar was, so uniform sets keep their bits) or times each
+    row's ``ratio = sigma_j / sigma_b`` squared (exactly that number at a ratio of one)."""
+    if ratio is None:
+        return np.full(n, 2.0 * sigma_b**2)
+    return 2.0 * sigma_b**2 * ratio.detach().to(torch.float64).cpu().numpy() ** 2
+
+
 def run_threaded(run: Callable[[slice], None], n: int, min_points: int) -> None:
     """``run(slice)`` over ``range(n)`` in up to ``torch.get_num_threads()`` threads, each with
     at least ``min_points`` points (the compiled loops release the GIL)."""

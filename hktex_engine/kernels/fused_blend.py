@@ -106,7 +106,7 @@ def _blend_points(
             j = pos[i]
             k = kid_t[r, j]
             h = h_t[r, j, 0] * c0 + h_t[r, j, 1] * c1 + h_t[r, j, 2] * c2
-            w = math.exp(np.float32(-d2[j] / scale))  # float32 exp: within an ulp of the cast
+            w = math.exp(np.float32(-d2[j] / scale[k]))  # float32 exp: within an ulp of the cast
             x = h * w / attrs[k, NORM]
             s = one / (one + np.float32(math.exp(-(attrs[k, SHARP] * (x - attrs[k, THR])))))
             v = (s - attrs[k, LOW]) / (attrs[k, HIGH] - attrs[k, LOW])
@@ -185,13 +185,15 @@ def blend(
     k_c: int,
     ordered: bool = True,
     priority: torch.Tensor | None = None,
+    ratio: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
     """``(albedo (P, 3), kernel ids (P, K_c), rho (P, K_c))`` at points ``(face_ids, bary)``
     from face tables ``ft`` (``kernels.tables.FaceTables`` covering their faces), the blended
     kernels in rule order; in threads over chunks of points. ``ordered=False`` returns the
     albedo alone (ids and rho None): the same kernels, chosen by a linear selection and
     summed in candidate order (colours within float32 round-off of the ordered sum), for
-    queries and renders that need no statistics. ``priority`` (N,): the layered blend's."""
+    queries and renders that need no statistics. ``priority`` (N,): the layered blend's;
+    ``ratio`` (N,): each kernel's ``sigma_j / sigma_b`` (a per-kernel-sigma set), else none."""
     # gathers and casts in numpy: torch's parallel kernels contend with a renderer's threads
     rows = compiled.array(ft.rows)[face_ids.numpy()]
     # per-kernel ends of the soft step, by soft_step's own torch expressions (same bits)
@@ -210,7 +212,8 @@ def blend(
         compiled.array(priority.detach()) if layered else np.zeros(1), dtype=np.float32
     )
     b = np.ascontiguousarray(compiled.array(bary), dtype=np.float32)
-    scale = 2.0 * sigma_b**2  # divided by, as the torch path does (not a reciprocal)
+    # divided by, as the torch path does (not a reciprocal)
+    scale = compiled.row_scales(sigma_b, ratio, norm.shape[0])
     n = rows.shape[0]
     k_c = min(k_c, k_s)
     out = np.empty((n, 3), dtype=np.float32)

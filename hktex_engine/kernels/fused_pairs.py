@@ -6,13 +6,13 @@ pair ``(p, j)`` with the saved ``dots_c = coef_j . Phi_p[n_jc]`` and ``blend = s
 Phi_p[n_jc]``:
 
     h   = sum_c w_jc dots_c                   d2 = |e_j - e_p|^2
-    r   = h exp(-d2 / (2 sigma_B^2)) / norm_j
+    r   = h exp(-d2 / scale_j) / norm_j       scale_j = 2 sigma_j^2 (sigma_B, or per kernel)
     rho = S(r; eps_j, k_j) = clamp((sig(k (r - eps)) - sig(-k eps)) / (sig(k (1 - eps)) - sig(-k eps)), 0, 1)
 
 and backward by the chain rule through each line from ``d loss / d rho``, with ``dh/dcoef_j =
 blend`` and ``dh/dw_jc = dots_c``; the clamp passes the gradient where torch's does (inside,
 ends included). Gradients reach the per-kernel rows (coef, norm, weights, centre embedding,
-threshold, sharpness); the point side is constant (batches whose query barycentrics need a
+threshold, sharpness, and ``scale`` for a per-kernel-sigma set); the point side is constant (batches whose query barycentrics need a
 gradient take the torch path). The colour blend after it (``kernels.blending``) is a few
 ``(P, K_c)`` torch operations, so it stays in torch and either blend rule trains through it.
 
@@ -54,7 +54,7 @@ def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, scal
             for d in range(emb_c.shape[1]):
                 diff = emb_y[p, d] - emb_c[j, d]
                 d2 += diff * diff
-            w = np.float32(math.exp(-d2 / scale))
+            w = np.float32(math.exp(-d2 / scale[j]))
             r = h * w / norm[j]
             sr = _sig(sharp[j] * (r - thr[j]))
             u = (sr - low[j]) / (high[j] - low[j])
@@ -65,7 +65,7 @@ def _forward(top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high, scal
 
 
 def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, low, high, scale, r_s, w_s, s_s, g_rho,
-              g_coef, g_norm, g_w, g_emb, g_thr, g_sharp):  # fmt: skip
+              g_coef, g_norm, g_w, g_emb, g_thr, g_sharp, g_scale):  # fmt: skip
     """Accumulates into the ``g_*`` arrays (this thread's own)."""
     k_c = top.shape[1]
     kk = coef.shape[1]
@@ -93,14 +93,20 @@ def _backward(top, dots, blend, emb_y, coef, norm, weights, emb_c, thr, sharp, l
             g_sharp[j] += g_k
             # r = h w / norm
             g_h = g_r * w / norm[j]
-            g_d2 = -g_r * r / scale
+            sc = scale[j]
+            g_d2 = -g_r * r / sc
             g_norm[j] += -g_r * r / norm[j]
             for c in range(4):
                 g_w[j, c] += g_h * dots[p, t, c]
             for q in range(kk):
                 g_coef[j, q] += g_h * blend[p, t, q]
+            d2 = zero
             for d in range(emb_c.shape[1]):
-                g_emb[j, d] += 2 * g_d2 * (emb_c[j, d] - emb_y[p, d])
+                diff = emb_c[j, d] - emb_y[p, d]
+                g_emb[j, d] += 2 * g_d2 * diff
+                d2 += diff * diff
+            # r = h exp(-d2 / scale) / norm: dr/dscale = r d2 / scale^2
+            g_scale[j] += -g_d2 * d2 / sc
 
 
 _FORWARD = None
@@ -116,19 +122,29 @@ def _kernels():
     return _FORWARD, _BACKWARD
 
 
+def pair_scales(sigma_b: float, ratio: torch.Tensor | None, n: int) -> torch.Tensor:
+    """``scale`` (n,) float32 for :class:`PairResponse`: ``2 sigma_b^2`` for every row (no
+    gradient), or times each row's ``ratio = sigma_j / sigma_b`` squared (with its graph,
+    when it has one)."""
+    if ratio is None:
+        return torch.full((n,), 2.0 * sigma_b**2, dtype=torch.float32)
+    return (2.0 * sigma_b**2 * ratio**2).to(torch.float32)
+
+
 class PairResponse(torch.autograd.Function):
     """``rho`` (P, K_c) of the chosen pairs ``top`` (rows of the per-kernel arrays) with saved
-    ``dots``/``blend``; see the module doc."""
+    ``dots``/``blend``; ``scale`` (rows) ``2 sigma^2`` (:func:`pair_scales`); see the module
+    doc."""
 
     @staticmethod
-    def forward(ctx, top, dots, blend, emb_y, sigma_b, coef, norm, weights, emb_c, thr, sharp):  # type: ignore[override]  # fmt: skip
+    def forward(ctx, top, dots, blend, emb_y, scale, coef, norm, weights, emb_c, thr, sharp):  # type: ignore[override]  # fmt: skip
         forward, _ = _kernels()
         # the soft step's ends per kernel, by soft_step's own torch expressions
         low = torch.sigmoid(-sharp.detach() * thr.detach())
         high = torch.sigmoid(sharp.detach() * (1 - thr.detach()))
         arrays = [compiled.array(x) for x in (top, dots, emb_y, norm, weights, emb_c, thr, sharp, low, high)]  # fmt: skip
         rho, r_s, w_s, s_s = (np.empty(top.shape, np.float32) for _ in range(4))
-        scale = np.float32(2.0 * sigma_b**2)
+        scale = np.ascontiguousarray(compiled.array(scale), dtype=np.float32)
 
         def run(sl: slice) -> None:
             forward(*(a[sl] for a in arrays[:3]), *arrays[3:], scale, rho[sl], r_s[sl], w_s[sl], s_s[sl])  # fmt: skip
@@ -149,7 +165,7 @@ class PairResponse(torch.autograd.Function):
         low, high = ctx.ends
         g = compiled.array(g_rho.to(torch.float32).contiguous())
         p = top.shape[0]
-        shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape]
+        shapes = [coef.shape, norm.shape, weights.shape, emb_c.shape, thr.shape, sharp.shape, ctx.scale.shape]  # fmt: skip
         threads = max(1, min(torch.get_num_threads(), p // THREAD_MIN_POINTS))
         accs = [[np.zeros(s, np.float32) for s in shapes] for _ in range(threads)]
         bounds = np.linspace(0, p, threads + 1).astype(int)
@@ -162,4 +178,5 @@ class PairResponse(torch.autograd.Function):
         compiled.run_each(run, threads)
         grads = [sum(a[n] for a in accs[1:]) + accs[0][n] for n in range(len(shapes))]
         grads = [torch.from_numpy(np.ascontiguousarray(x)) for x in grads]
-        return (None, None, None, None, None, *grads)
+        g_scale = grads.pop()
+        return (None, None, None, None, g_scale, *grads)

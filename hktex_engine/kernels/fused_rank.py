@@ -170,7 +170,7 @@ def _rank_points(
                     acc += coef[j, q] * phi[g, q]
                 dots[i, c] = acc
                 h += acc * weights[j, c]
-            w = np.float32(math.exp(np.float32(-d2[p, i] / scale)))
+            w = np.float32(math.exp(np.float32(-d2[p, i] / scale[j])))
             x = h * w / norm[j]
             s = one / (one + np.float32(math.exp(-(sharp[j] * (x - thr[j])))))
             rho[i] = _unit((s - low[j]) / (high[j] - low[j]))
@@ -328,13 +328,15 @@ def rank_pairs(
     sigma_b: float,
     k_c: int,
     keep: bool = True,
+    ratio: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``model._rank_pairs``' results (``top`` (P, k_c) rows of the per-kernel terms, ``dots``
     (P, k_c, 4), ``blend`` (P, k_c, K)) and the chosen ``rho`` (P, k_c), in rule order.
 
     ``local`` (P, C): each point's candidates as rows of the terms, nearest first (distance,
     then kernel id); ``d2`` their squared embedding distances. ``keep=False``: no ``dots``
-    and ``blend`` (empty; a no-grad blend needs only ``top`` and ``rho``)."""
+    and ``blend`` (empty; a no-grad blend needs only ``top`` and ``rho``). ``ratio``: each
+    row's ``sigma_j / sigma_b`` (a per-kernel-sigma set), else ``sigma_b`` for all."""
     _, kernel = _kernels()
     evecs = field_evecs32(field)
     verts = field.faces[face_ids].numpy()
@@ -352,7 +354,7 @@ def rank_pairs(
     dots = np.empty((p, k_c, 4) if keep else (p, 0, 4), np.float32)
     blend = np.empty((p, k_c, kk) if keep else (p, 0, kk), np.float32)
     rho = np.empty((p, k_c), np.float32)
-    scale = 2.0 * sigma_b**2
+    scale = compiled.row_scales(sigma_b, ratio, norm.shape[0])
 
     def run(sl: slice) -> None:
         kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, *attrs, scale, k_c, keep, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip

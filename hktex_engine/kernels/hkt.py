@@ -29,6 +29,13 @@ version 4 with its codes as a last stream (linear over the priority's range). A 
 never written as 5 or 6, and a reader older than them refuses a layered set by its version
 rather than evaluating it with the wrong blend.
 
+A set with a biharmonic scale per kernel (``KernelConfig.sigma = "per_kernel"``) has the
+member ``sigma_ratio`` (``sigma_j / sigma_B``, float16 when compact; quantised linear in its
+logarithm over ``SIGMA_RATIO_RANGE``, 8 bits: steps of 0.36 %): version 7 is version 1 with
+it, version 8 version 4 with its codes as a last stream, each with ``priority`` as well when
+the set's blend is layered (``sigma_ratio`` after it). A §4-5 set is never written as 7 or 8,
+and a reader older than them refuses such a set by its version.
+
 Reading is defensive because a file may come from anyone: members are checked for size before
 they are decompressed (zip bombs), ``.npy`` headers are parsed with pickles refused, and
 shapes, ranges, finiteness and the mesh / spectral-config hashes are checked before use.
@@ -47,7 +54,7 @@ from typing import BinaryIO
 
 import numpy as np
 
-from hktex_engine.config import KernelConfig
+from hktex_engine.config import SIGMA_RATIO_RANGE, KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels.model import (
     ETA_RANGE,
@@ -59,7 +66,7 @@ from hktex_engine.kernels.model import (
 )
 
 FORMAT = "hktex-kernels"
-VERSION = 6
+VERSION = 8
 #: The version a plain (unquantised) file is written as; readers of version 1 read it.
 PLAIN_VERSION = 1
 #: Version 2: quantised members, face ids as plain codes. Version 3 (what is written): the
@@ -77,9 +84,20 @@ QUANTISED_VERSION = 4
 PLAIN_LAYERED_VERSION = 5
 QUANTISED_LAYERED_VERSION = 6
 LAYERED_VERSIONS = (PLAIN_LAYERED_VERSION, QUANTISED_LAYERED_VERSION)
-QUANTISED_VERSIONS = (QUANTISED_V2, QUANTISED_V3, QUANTISED_VERSION, QUANTISED_LAYERED_VERSION)
+#: A per-kernel sigma's versions: 1 and 4 with a ``sigma_ratio`` member (and ``priority``
+#: before it when the blend is layered; see the module doc).
+PLAIN_SIGMA_VERSION = 7
+QUANTISED_SIGMA_VERSION = 8
+SIGMA_VERSIONS = (PLAIN_SIGMA_VERSION, QUANTISED_SIGMA_VERSION)
+QUANTISED_VERSIONS = (
+    QUANTISED_V2,
+    QUANTISED_V3,
+    QUANTISED_VERSION,
+    QUANTISED_LAYERED_VERSION,
+    QUANTISED_SIGMA_VERSION,
+)
 #: Versions whose codes sit in one ``codes.bin`` member (version 4's layout).
-STREAM_VERSIONS = (QUANTISED_VERSION, QUANTISED_LAYERED_VERSION)
+STREAM_VERSIONS = (QUANTISED_VERSION, QUANTISED_LAYERED_VERSION, QUANTISED_SIGMA_VERSION)
 #: Members and their columns (0 = a vector). ``base_color`` has 3 entries, not one per kernel.
 MEMBERS: dict[str, int] = {
     "face_ids": 0,
@@ -98,6 +116,8 @@ PACKED = tuple(name for name in MEMBERS if name != "base_color")
 #: A layered set's members: the paper's and one priority per kernel.
 LAYERED_MEMBERS: dict[str, int] = {**MEMBERS, "priority": 0}
 LAYERED_PACKED = (*PACKED, "priority")
+#: Every member a file may hold (the extensions' in their stored order, last).
+ALL_MEMBERS: dict[str, int] = {**LAYERED_MEMBERS, "sigma_ratio": 0}
 COLOR_SPACES = ("srgb", "linear")
 #: Refuse kernel counts beyond this (a fit's budget is ~70k; 10M is far past any real set).
 MAX_KERNELS = 10_000_000
@@ -120,6 +140,9 @@ QUANT_BITS: dict[str, int] = {
 #: The layered blend's priority (``bits={"priority": b}`` overrides): 8 bits over [-8, 8] is
 #: a step of 0.063, a share off by at most 3 % between two kernels of neighbouring codes.
 PRIORITY_BITS = 8
+#: A per-kernel sigma's ratio (``bits={"sigma_ratio": b}`` overrides): 8 bits over the log of
+#: [0.4, 2.5], a step of 0.72 % in sigma (0.36 % at most off), a footprint's radius likewise.
+SIGMA_RATIO_BITS = 8
 #: How each member's codes map to values: (map, lo, hi); colours carry per-channel ranges.
 _QUANT_MAPS: dict[str, tuple[str, float, float]] = {
     "theta": ("linear", THETA_RANGE[0], THETA_RANGE[1]),
@@ -127,6 +150,7 @@ _QUANT_MAPS: dict[str, tuple[str, float, float]] = {
     "threshold": ("mid", THRESHOLD_RANGE[0], 1.0),
     "sharpness": ("log", SHARPNESS_RANGE[0], SHARPNESS_RANGE[1]),
     "priority": ("linear", PRIORITY_RANGE[0], PRIORITY_RANGE[1]),
+    "sigma_ratio": ("log", SIGMA_RATIO_RANGE[0], SIGMA_RATIO_RANGE[1]),
 }
 _COMPACT_FLOATS = {
     "barycentrics": np.float16,
@@ -137,6 +161,7 @@ _COMPACT_FLOATS = {
     "colors": np.float16,
     "base_color": np.float32,
     "priority": np.float16,  # 4e-3 at |beta| = 8 at most: a share changes by < 0.4 %
+    "sigma_ratio": np.float16,  # relative 4.9e-4: a footprint's radius by as much
 }
 
 
@@ -198,7 +223,7 @@ def encode_hkt(
         extra["base_color"] = [float(x) for x in members.pop("base_color")]  # float32, exact
         # each packed member deflated on its own (its own Huffman tables: one deflate of them
         # all measured +810 B on a 2,216-kernel set), one after another in one stored entry
-        parts = [_deflate(members[name].tobytes()) for name in _packed(_layered(kernelset))]
+        parts = [_deflate(members[name].tobytes()) for name in _packed(*_kinds(kernelset))]
         extra["streams"] = [len(p) for p in parts]
         streams = b"".join(parts)
         arrays = {}
@@ -206,7 +231,7 @@ def encode_hkt(
         arrays = _stored_arrays(kernelset, compact)
     manifest = {
         "format": FORMAT,
-        "version": _version(quantised, _layered(kernelset)),
+        "version": _version(quantised, *_kinds(kernelset)),
         "count": len(kernelset),
         "mesh_hash": kernelset.mesh_hash,
         "config_hash": kernelset.config_hash,
@@ -231,24 +256,28 @@ def encode_hkt(
     return out.getvalue()
 
 
-def _layered(ks: KernelSet) -> bool:
-    return ks.kernel_config.blend == "layered"
+def _kinds(ks: KernelSet) -> tuple[bool, bool]:
+    """Which extensions a set uses: (the layered blend, a sigma per kernel)."""
+    return ks.kernel_config.blend == "layered", ks.kernel_config.per_kernel_sigma
 
 
-def _members(layered: bool) -> dict[str, int]:
-    return LAYERED_MEMBERS if layered else MEMBERS
+def _members(layered: bool, per_sigma: bool = False) -> dict[str, int]:
+    members = LAYERED_MEMBERS if layered else MEMBERS
+    return {**members, "sigma_ratio": 0} if per_sigma else members
 
 
-def _packed(layered: bool) -> tuple[str, ...]:
-    return LAYERED_PACKED if layered else PACKED
+def _packed(layered: bool, per_sigma: bool = False) -> tuple[str, ...]:
+    return tuple(name for name in _members(layered, per_sigma) if name != "base_color")
 
 
 def written_version(ks: KernelSet, quantised: bool) -> int:
     """The format version :func:`save_hkt` writes ``ks`` as."""
-    return _version(quantised, _layered(ks))
+    return _version(quantised, *_kinds(ks))
 
 
-def _version(quantised: bool, layered: bool) -> int:
+def _version(quantised: bool, layered: bool, per_sigma: bool = False) -> int:
+    if per_sigma:
+        return QUANTISED_SIGMA_VERSION if quantised else PLAIN_SIGMA_VERSION
     if layered:
         return QUANTISED_LAYERED_VERSION if quantised else PLAIN_LAYERED_VERSION
     return QUANTISED_VERSION if quantised else PLAIN_VERSION
@@ -281,7 +310,7 @@ def _json_default(value: object) -> object:
 
 
 def _stored_arrays(ks: KernelSet, compact: bool) -> dict[str, np.ndarray]:
-    arrays = {name: np.asarray(getattr(ks, name)) for name in _members(_layered(ks))}
+    arrays = {name: np.asarray(getattr(ks, name)) for name in _members(*_kinds(ks))}
     if not compact:
         out = {n: a.astype(np.float32) for n, a in arrays.items() if n != "face_ids"}
         return {"face_ids": arrays["face_ids"].astype(np.int64), **out}
@@ -303,7 +332,7 @@ def load_hkt(
     try:
         with zipfile.ZipFile(path) as zf:
             manifest = _read_manifest(zf)
-            n, members = manifest["count"], _members(manifest["version"] in LAYERED_VERSIONS)
+            n, members = manifest["count"], _members(*_manifest_kinds(manifest))
             if manifest["version"] in QUANTISED_VERSIONS:
                 arrays = _read_quantised(zf, manifest, n)
             else:
@@ -361,11 +390,22 @@ def _read_manifest(zf: zipfile.ZipFile) -> dict:
     if manifest.get("color_space") not in COLOR_SPACES:
         raise KernelSetError(f"manifest color_space must be one of {COLOR_SPACES}")
     layered = manifest.get("blend", "paper") == "layered"
-    if layered != (version in LAYERED_VERSIONS):
+    if layered != (version in LAYERED_VERSIONS) and version not in SIGMA_VERSIONS:
         raise KernelSetError(
             f"a version-{version} file cannot hold a {manifest.get('blend', 'paper')!r} blend"
         )
+    per_sigma = manifest.get("sigma", "uniform") == "per_kernel"
+    if per_sigma != (version in SIGMA_VERSIONS):
+        raise KernelSetError(
+            f"a version-{version} file cannot hold a {manifest.get('sigma', 'uniform')!r} sigma"
+        )
     return manifest
+
+
+def _manifest_kinds(manifest: dict) -> tuple[bool, bool]:
+    """(layered blend, sigma per kernel) of a checked manifest (:func:`_read_manifest`)."""
+    layered = manifest.get("blend", "paper") == "layered"
+    return layered, manifest["version"] in SIGMA_VERSIONS
 
 
 def _read_member(zf: zipfile.ZipFile, name: str, n: int, cols: int) -> np.ndarray:
@@ -405,6 +445,7 @@ def _kernel_config(manifest: dict) -> KernelConfig:
             k_search=int(manifest["k_search"]),
             k_blend=int(manifest["k_blend"]),
             blend=str(manifest.get("blend", "paper")),  # versions 1-4 predate the field
+            sigma=str(manifest.get("sigma", "uniform")),  # versions 1-6 predate it
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise KernelSetError(f"manifest lacks a valid kernel config: {exc}") from exc
@@ -420,7 +461,7 @@ def _kernel_config(manifest: dict) -> KernelConfig:
 
 def _bits(ks: KernelSet, bits: dict[str, int] | None) -> dict[str, int]:
     """Code widths per member: :data:`QUANT_BITS` overridden by ``bits``, face ids minimal."""
-    out = {**QUANT_BITS, "priority": PRIORITY_BITS}
+    out = {**QUANT_BITS, "priority": PRIORITY_BITS, "sigma_ratio": SIGMA_RATIO_BITS}
     for name, b in (bits or {}).items():
         if name not in out:
             raise KernelSetError(f"no quantisation width for member {name!r}")
@@ -443,7 +484,7 @@ def sorted_by_face(ks: KernelSet) -> KernelSet:
         return ks
     per_kernel = {
         name: np.asarray(getattr(ks, name))[order]
-        for name in _members(_layered(ks))
+        for name in _members(*_kinds(ks))
         if name != "base_color"
     }
     return dataclasses.replace(ks, **per_kernel)
@@ -527,7 +568,7 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
         ),
     }
     for name, (kind, lo, hi) in _QUANT_MAPS.items():
-        if name not in _members(_layered(ks)):
+        if name not in _members(*_kinds(ks)):
             continue
         table[name] = {"bits": bits[name], "map": kind, "lo": lo, "hi": hi}
         arrays[name] = pack_codes(
@@ -550,13 +591,13 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
 
 
 def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np.ndarray]:
-    """Members of a version-2, -3, -4 or -6 file, decoded and checked against the manifest's
-    table."""
+    """Members of a version-2, -3, -4, -6 or -8 file, decoded and checked against the
+    manifest's table."""
     table = manifest.get("quantisation")
     if not isinstance(table, dict):
         raise KernelSetError("quantised kernel-set file lacks its quantisation table")
     version = manifest["version"]
-    names = _packed(version in LAYERED_VERSIONS)
+    names = _packed(*_manifest_kinds(manifest))
     widths: dict[str, int] = {}
     for name in names:
         spec = table.get(name)
@@ -586,9 +627,9 @@ def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np
 
 
 def _read_streams(zf: zipfile.ZipFile, lengths, sizes: dict[str, int]) -> dict[str, np.ndarray]:
-    """The packed members of a version-4 or -6 file: one raw deflate stream each, in
-    ``sizes``' order (:data:`PACKED`, then ``priority``), their compressed ``lengths`` in the
-    manifest."""
+    """The packed members of a version-4, -6 or -8 file: one raw deflate stream each, in
+    ``sizes``' order (:data:`PACKED`, then ``priority``, then ``sigma_ratio``), their compressed
+    ``lengths`` in the manifest."""
     ok = isinstance(lengths, list) and len(lengths) == len(sizes)
     if not ok or not all(isinstance(x, int) and x > 0 for x in lengths):
         raise KernelSetError(f"manifest streams must be {len(sizes)} positive lengths")
@@ -610,7 +651,7 @@ def _read_streams(zf: zipfile.ZipFile, lengths, sizes: dict[str, int]) -> dict[s
 
 def _code_count(name: str) -> int:
     """Codes per kernel of a packed member (two barycentrics: the third is implied)."""
-    return 2 if name == "barycentrics" else max(LAYERED_MEMBERS[name], 1)
+    return 2 if name == "barycentrics" else max(ALL_MEMBERS[name], 1)
 
 
 def _decode_member(

@@ -10,7 +10,9 @@ holds the same kernels as torch parameters on a device and evaluates albedo at s
     albedo(y) = clamp(a_0 + sum_{top K_c} rho_j a_j / max(1, sum rho_j), 0, 1)
 
 or, with ``KernelConfig.blend = "layered"``, the layered blend of ``kernels.blending`` (a
-learnable priority per kernel decides the shares where kernels overlap).
+learnable priority per kernel decides the shares where kernels overlap), and with
+``KernelConfig.sigma = "per_kernel"`` a scale ``sigma_j = sigma_B s_j`` per kernel in ``w_j``
+(the learnt ratio ``s_j`` is the row ``log_sigma = log s_j``).
 
 Evaluation for P points and K_s candidates each: the point's eigenfunctions on every grid node
 ``Phi_y`` (P, G, K) come from three contiguous vertex rows; each kernel's spectral coefficients
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from hktex_engine.config import KernelConfig
+from hktex_engine.config import SIGMA_RATIO_RANGE, KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels import blending, fused_blend, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.knn import CandidateSearch
@@ -54,6 +56,8 @@ THRESHOLD_RANGE = (0.3, 1.0 - 1e-4)
 SHARPNESS_RANGE = (10.0, 200.0)
 COLOR_RANGE = (-1.0, 1.0)
 PRIORITY_RANGE = blending.PRIORITY_RANGE
+#: ``log(sigma_j / sigma_B)``'s box (``KernelConfig.sigma = "per_kernel"``).
+LOG_SIGMA_RANGE = (math.log(SIGMA_RATIO_RANGE[0]), math.log(SIGMA_RATIO_RANGE[1]))
 BASE_RANGE = (0.0, 1.0)
 #: How ``h_j(y)`` is computed without gradients: "auto" picks per batch between the node
 #: matmul ("bmm") and shared (vertex, kernel) pairs ("vertex"); see ``_h_by_vertex_pairs``.
@@ -104,6 +108,9 @@ class KernelSet:
     kernel_config: KernelConfig = field(default_factory=KernelConfig)
     #: (N,) in PRIORITY_RANGE for the layered blend (kernel_config.blend); None for the paper's
     priority: np.ndarray | None = None
+    #: (N,) ``sigma_j / sigma_B`` in SIGMA_RATIO_RANGE when kernel_config.sigma is
+    #: "per_kernel"; None for §4's one sigma_B
+    sigma_ratio: np.ndarray | None = None
     mesh_hash: str = ""
     config_hash: str = ""
     color_space: str = "srgb"
@@ -137,6 +144,7 @@ class KernelSet:
         if n == 0:
             raise KernelSetError("the kernel set is empty")
         self._validate_priority(n)
+        self._validate_sigma_ratio(n)
         if np.asarray(self.face_ids).dtype.kind == "f":
             raise KernelSetError("member 'face_ids' must be integers")
         fid = np.asarray(self.face_ids)
@@ -174,6 +182,21 @@ class KernelSet:
             raise KernelSetError(f"member 'priority' must be {n} finite floats")
         lo, hi = PRIORITY_RANGE
         _check_range("priority", arr, lo - 1e-2, hi + 1e-2)
+
+    def _validate_sigma_ratio(self, n: int) -> None:
+        """A per-kernel-sigma set carries one finite ratio per kernel in range; others none."""
+        per_kernel = self.kernel_config.per_kernel_sigma
+        if self.sigma_ratio is None:
+            if per_kernel:
+                raise KernelSetError("a per-kernel-sigma kernel set needs member 'sigma_ratio'")
+            return
+        if not per_kernel:
+            raise KernelSetError("member 'sigma_ratio' belongs to a per-kernel-sigma set only")
+        arr = np.asarray(self.sigma_ratio)
+        if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
+            raise KernelSetError(f"member 'sigma_ratio' must be {n} finite floats")
+        lo, hi = SIGMA_RATIO_RANGE
+        _check_range("sigma_ratio", arr, lo * (1 - 1e-3), hi * (1 + 1e-3))
 
 
 def _check_range(name: str, values: np.ndarray, lo: float, hi: float) -> None:
@@ -240,6 +263,7 @@ class HeatKernelModel(nn.Module):
         config: KernelConfig | None = None,
         knn_backend: str = "auto",
         priority: torch.Tensor | np.ndarray | None = None,
+        sigma_ratio: torch.Tensor | np.ndarray | None = None,
     ) -> None:
         super().__init__()
         self.field = field
@@ -258,6 +282,15 @@ class HeatKernelModel(nn.Module):
             priority = torch.zeros(self.face_ids.shape[0], device=dev, dtype=dt)
         # the paper's blend never reads it: no gradient, no optimiser state
         self.priority = nn.Parameter(_float(priority, dev, dt), requires_grad=self.layered)
+        # log(sigma_j / sigma_B): 0 for every kernel is §4's one sigma_B; read and learnt only
+        # when the config says per kernel (else no gradient, no optimiser state)
+        n = self.face_ids.shape[0]
+        log_sigma = (
+            torch.zeros(n, device=dev, dtype=dt)
+            if sigma_ratio is None
+            else torch.log(_float(sigma_ratio, dev, dt))
+        )
+        self.log_sigma = nn.Parameter(log_sigma, requires_grad=self.per_kernel_sigma)
         self._check_shapes()
         self._generation = 0
         self._cache_key: tuple | None = None
@@ -304,6 +337,9 @@ class HeatKernelModel(nn.Module):
             priority=None
             if kernelset.priority is None
             else np.asarray(kernelset.priority, dtype=np.float64),
+            sigma_ratio=None
+            if kernelset.sigma_ratio is None
+            else np.asarray(kernelset.sigma_ratio, dtype=np.float64),
         )
 
     def to_kernelset(
@@ -325,6 +361,9 @@ class HeatKernelModel(nn.Module):
             base_color=np_(self.base_color).astype(np.float64),
             kernel_config=self.config,
             priority=np_(self.priority).astype(np.float64) if self.layered else None,
+            sigma_ratio=np_(torch.exp(self.log_sigma)).astype(np.float64)
+            if self.per_kernel_sigma
+            else None,
             mesh_hash=self.field.spectra.mesh_hash,
             config_hash=self.field.spectra.config_hash,
             color_space=color_space,
@@ -343,6 +382,7 @@ class HeatKernelModel(nn.Module):
             "colors": (n, 3),
             "base_color": (3,),
             "priority": (n,),
+            "log_sigma": (n,),
         }
         for name, shape in expect.items():
             got = tuple(getattr(self, name).shape)
@@ -364,6 +404,20 @@ class HeatKernelModel(nn.Module):
         """Whether colours blend by priority (``kernels.blending``) rather than §5's average."""
         return self.config.blend == "layered"
 
+    @property
+    def per_kernel_sigma(self) -> bool:
+        """Whether each kernel has its own biharmonic scale (``log_sigma``) or §4's one."""
+        return self.config.per_kernel_sigma
+
+    def sigma_ratio(self, idx: torch.Tensor | None = None) -> torch.Tensor | None:
+        """``s_j = sigma_j / sigma_B`` of kernels ``idx`` (all when None), with a graph when
+        learnt; None when every kernel has ``sigma_B`` (the callers then divide by the scalar,
+        as before). Ratios, not sigmas: ``2 sigma_B^2 s_j^2`` is ``2 sigma_B^2`` exactly at
+        ``s_j = 1``, so such a set evaluates bit for bit as the uniform one."""
+        if not self.per_kernel_sigma:
+            return None
+        return torch.exp(self.log_sigma if idx is None else self.log_sigma[idx])
+
     def priority_of(self, kid: torch.Tensor) -> torch.Tensor | None:
         """The layered blend's priorities of chosen kernels ``kid`` (None for the paper's
         blend); padding ids (``rho`` 0, at or past the count) read the last kernel's, which
@@ -382,6 +436,7 @@ class HeatKernelModel(nn.Module):
         self.colors.clamp_(*COLOR_RANGE)
         self.base_color.clamp_(*BASE_RANGE)
         self.priority.clamp_(*PRIORITY_RANGE)
+        self.log_sigma.clamp_(*LOG_SIGMA_RANGE)
         self.bary.clamp_(min=0.0)
         self.bary.div_(self.bary.sum(dim=1, keepdim=True))
 
@@ -424,12 +479,16 @@ class HeatKernelModel(nn.Module):
         sharpness: torch.Tensor | np.ndarray,
         colors: torch.Tensor | np.ndarray,
         priority: torch.Tensor | np.ndarray | None = None,
+        log_sigma: torch.Tensor | np.ndarray | None = None,
     ) -> HeatKernelModel:
-        """Add kernels at the end (``eta`` in natural units; ``priority`` 0 unless given)."""
+        """Add kernels at the end (``eta`` in natural units; ``priority`` and ``log_sigma`` 0
+        unless given)."""
         dev, dt = self.field.device, self.field.dtype
         self._roster += 1
         if priority is None:
             priority = torch.zeros(len(face_ids), device=dev, dtype=dt)
+        if log_sigma is None:
+            log_sigma = torch.zeros(len(face_ids), device=dev, dtype=dt)
         self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
         new = [
             bary,
@@ -439,6 +498,7 @@ class HeatKernelModel(nn.Module):
             sharpness,
             colors,
             priority,
+            log_sigma,
         ]
         for p, rows in zip(self._row_params(), new, strict=True):
             p.data = torch.cat([p.data, _float(rows, dev, dt)])
@@ -450,7 +510,7 @@ class HeatKernelModel(nn.Module):
     def _row_params(self) -> list[nn.Parameter]:
         return [
             self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
-            self.priority,
+            self.priority, self.log_sigma,
         ]  # fmt: skip
 
     # ----------------------------------------------------------------- caches
@@ -591,7 +651,7 @@ class HeatKernelModel(nn.Module):
             cfg = self.config
             out, kid, rho = fused_blend.blend(
                 ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=return_aux,
-                priority=self.priority if self.layered else None,
+                priority=self.priority if self.layered else None, ratio=self.sigma_ratio(),
             )  # fmt: skip
             return (out, {"indices": kid, "rho": rho}) if return_aux else out
         row, kid, d2 = point_distances(ft, face_ids, bary)
@@ -603,7 +663,7 @@ class HeatKernelModel(nn.Module):
         d2, kid = d2.gather(1, pos), kid.gather(1, pos)
         h = point_responses(ft, row, pos, bary)
         _, norm, _, _, _ = self._terms
-        w = torch.exp(-d2 / (2.0 * self.config.sigma_b**2)).to(h.dtype)
+        w = _heat_weight(d2, self.config.sigma_b, self.sigma_ratio(), kid).to(h.dtype)
         r = h * w / norm[kid]
         rho = soft_step(r, self.threshold[kid], self.sharpness[kid])
         top = select_by_rule(rho, d2, kid, min(self.config.k_blend, k_s))
@@ -724,6 +784,7 @@ class HeatKernelModel(nn.Module):
                     self.config.sigma_b,
                     d2=d2,
                     return_d2=True,
+                    ratio=self.sigma_ratio(),
                 )
                 rho = soft_step(r, self.threshold[cand], self.sharpness[cand])
             else:
@@ -765,6 +826,8 @@ class HeatKernelModel(nn.Module):
         uniq, local, terms = self._candidate_terms(cand)
         k_c = min(self.config.k_blend, cand.shape[1])
         detached = [t.detach() for t in terms]
+        ratio = self.sigma_ratio(uniq)
+        ratio = None if ratio is None else ratio.detach()
         parts = [
             _rank_pairs(
                 face_ids[sl],
@@ -777,6 +840,7 @@ class HeatKernelModel(nn.Module):
                 self.field,
                 self.config.sigma_b,
                 k_c,
+                ratio,
             )
             for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
         ]
@@ -807,6 +871,7 @@ class HeatKernelModel(nn.Module):
         top, _, _, rho = fused_rank.rank_pairs(
             self.field, face_ids, bary, cand, d2, self.threshold, self.sharpness, coef, norm,
             nodes, weights, self.config.sigma_b, self.config.k_blend, keep=False,
+            ratio=self.sigma_ratio(),
         )  # fmt: skip
         return top, rho
 
@@ -821,6 +886,7 @@ class HeatKernelModel(nn.Module):
         attrs = [self.threshold, self.sharpness]
         if uniq.shape[0] != len(self):
             attrs = [a[uniq] for a in attrs]
+        ratio = self.sigma_ratio(uniq)
         top, dots, blend, _ = fused_rank.rank_pairs(
             self.field,
             face_ids,
@@ -835,10 +901,12 @@ class HeatKernelModel(nn.Module):
             weights.detach(),
             self.config.sigma_b,
             k_c,
+            ratio=None if ratio is None else ratio.detach(),
         )
         emb_y = self._embedding(face_ids, bary.detach())
+        scale = fused_pairs.pair_scales(self.config.sigma_b, ratio, uniq.shape[0])
         rho = fused_pairs.PairResponse.apply(
-            top, dots, blend, emb_y, self.config.sigma_b, coef, norm, weights, emb_c, *attrs[:2]
+            top, dots, blend, emb_y, scale, coef, norm, weights, emb_c, *attrs[:2]
         )
         kid = uniq[top]
         return self._mix(rho, kid), kid, rho.detach()
@@ -849,7 +917,8 @@ class HeatKernelModel(nn.Module):
         h = _PairResponse.apply(coef[top], weights[top], dots, blend)
         emb_y = self.field.embedding_at(face_ids, bary)
         d2_top = ((emb_y[:, None, :] - emb_c[top]) ** 2).sum(dim=2)
-        r = h * torch.exp(-d2_top / (2.0 * self.config.sigma_b**2)) / norm[top]
+        w = _heat_weight(d2_top, self.config.sigma_b, self.sigma_ratio(uniq), top)
+        r = h * w / norm[top]
         kid = uniq[top]
         return kid, soft_step(r, self.threshold[kid], self.sharpness[kid])
 
@@ -860,19 +929,23 @@ class HeatKernelModel(nn.Module):
         if self._grad_needed():
             uniq, local = torch.unique(cand, return_inverse=True)
             terms = self._spectral_terms(uniq)
+            ratio = self.sigma_ratio(uniq)
             if face_ids.shape[0] > GRAD_CHUNK_POINTS:
                 # Large differentiable batches (multi-view ray batches): recompute each chunk's
                 # (P, C, K) intermediates in backward instead of keeping them all alive.
-                fn = partial(_pair_ratio, field=self.field, sigma_b=self.config.sigma_b)
+                fn = partial(_ratio_of_rows, field=self.field, sigma_b=self.config.sigma_b)
+                extra = () if ratio is None else (ratio,)
                 parts = [
-                    _Recompute.apply(fn, face_ids[sl], bary[sl], local[sl], *terms)
+                    _Recompute.apply(fn, face_ids[sl], bary[sl], local[sl], *terms, *extra)
                     for sl in _slices(face_ids.shape[0], GRAD_CHUNK_POINTS)
                 ]
                 return torch.cat(parts)
         else:
             self._ensure_cache()
-            terms, local = self._terms, cand
-        return _pair_ratio(face_ids, bary, local, *terms, self.field, self.config.sigma_b)
+            terms, local, ratio = self._terms, cand, self.sigma_ratio()
+        return _pair_ratio(
+            face_ids, bary, local, *terms, self.field, self.config.sigma_b, ratio=ratio
+        )
 
 
 def _pair_ratio(
@@ -888,12 +961,14 @@ def _pair_ratio(
     sigma_b: float,
     d2: torch.Tensor | None = None,
     return_d2: bool = False,
+    ratio: torch.Tensor | None = None,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
     """``r`` for points and their candidates ``local`` (rows of the per-kernel terms).
 
     ``d2``: squared embedding distances (P, C) when the caller has them (the exact candidate
     cut computes them anyway); they must not need a gradient. ``return_d2``: return
-    ``(r, d2)`` (the tie rule ranks by both).
+    ``(r, d2)`` (the tie rule ranks by both). ``ratio``: per-row ``sigma_j / sigma_b`` (rows
+    of the terms) of a per-kernel-sigma set; None: ``sigma_b`` for all.
     """
     h = None
     if not torch.is_grad_enabled() and PAIR_PATH != "bmm":
@@ -903,8 +978,28 @@ def _pair_ratio(
     if d2 is None:
         emb_y = field.embedding_at(face_ids, bary)
         d2 = ((emb_y[:, None, :] - emb_c[local]) ** 2).sum(dim=2)  # squared distance, used once
-    r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    r = h * _heat_weight(d2.to(h.dtype), sigma_b, ratio, local) / norm[local]
     return (r, d2) if return_d2 else r
+
+
+def _ratio_of_rows(*tensors: torch.Tensor, field: SpectralField, sigma_b: float) -> torch.Tensor:
+    """:func:`_pair_ratio` of ``(face_ids, bary, local, coef, norm, nodes, weights, emb_c[,
+    ratio])``, all positional (what :class:`_Recompute` passes)."""
+    ratio = tensors[8] if len(tensors) > 8 else None
+    return _pair_ratio(*tensors[:8], field, sigma_b, ratio=ratio)
+
+
+def _heat_weight(
+    d2: torch.Tensor,
+    sigma_b: float,
+    ratio: torch.Tensor | None = None,
+    rows: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The biharmonic decay ``w = exp(-d2 / (2 sigma^2))`` per pair: ``sigma_b`` for every
+    pair (divided as a scalar, the same bits as ever), or ``sigma_b ratio[rows]`` per pair."""
+    if ratio is None:
+        return torch.exp(-d2 / (2.0 * sigma_b**2))
+    return torch.exp(-d2 / (2.0 * sigma_b**2 * ratio[rows].to(d2.dtype) ** 2))
 
 
 @torch.no_grad()
@@ -923,6 +1018,7 @@ def _rank_pairs(
     field,
     sigma_b,
     k_c,
+    ratio=None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Rank all candidates without a graph; keep what the top ``k_c`` pairs' backward needs.
 
@@ -932,7 +1028,7 @@ def _rank_pairs(
     """
     phi_y = field.node_values(face_ids, bary)  # (P, G, K)
     h = _h_by_node_matmul(face_ids, bary, local, coef, nodes, weights, field, phi_y)
-    r = h * torch.exp(-d2.to(h.dtype) / (2.0 * sigma_b**2)) / norm[local]
+    r = h * _heat_weight(d2.to(h.dtype), sigma_b, ratio, local) / norm[local]
     rho = soft_step(r, threshold[local], sharpness[local])
     # tie rule (ALGORITHM.md 5): ``local`` indexes the sorted unique kernels, so its order
     # is the kernel-index order

@@ -47,12 +47,13 @@ class SpectralConfigIn(_Strict):
 class FitParamsIn(_Strict):
     """Fitting parameters; every field optional (the preset's values, FitParams)."""
 
-    preset: Literal["default", "earlier", "later", "layered", "dense"] | None = Field(
+    preset: Literal["default", "earlier", "later", "layered", "dense", "sigma"] | None = Field(
         None,
         description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
         " + error sampling; 'layered' = default + the layered blend, priorities trained"
         " late: sharper, but .hkt versions 5/6; 'dense' = default with the densification"
-        " threshold halved: more kernels, +0.1 to +1.0 dB on average for 30-70 % more bytes);"
+        " threshold halved: more kernels, +0.1 to +1.0 dB on average for 30-70 % more bytes;"
+        " 'sigma' = default with a biharmonic scale learnt per kernel: .hkt versions 7/8);"
         " the other fields override it",
     )
     polish_colors: bool | None = Field(
@@ -83,6 +84,9 @@ class FitParamsIn(_Strict):
     lr_base: float | None = Field(None, gt=0, le=10)
     lr_centers: float | None = Field(None, gt=0, le=10)
     lr_priority: float | None = Field(None, gt=0, le=10)
+    lr_sigma: float | None = Field(
+        None, gt=0, le=10, description="'sigma' preset: Adam's rate on each log(sigma_j / sigma_B)"
+    )
     priority_start: float | None = Field(
         None, ge=0, le=1, description="layered blend: fraction of the steps before priorities train"
     )
