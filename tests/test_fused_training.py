@@ -239,17 +239,24 @@ def _step_grads(model, f, b, target):
     return out.detach(), aux, grads
 
 
-@pytest.mark.parametrize(("threads", "blend"), [(1, "paper"), (2, "paper"), (2, "layered")])
-def test_training_batch_equals_the_torch_path(field32, spectra3, monkeypatch, threads, blend):
+@pytest.mark.parametrize(
+    ("threads", "blend", "sigma"),
+    [(1, "paper", "uniform"), (2, "paper", "uniform"), (2, "layered", "uniform"),
+     (1, "paper", "per_kernel"), (2, "paper", "per_kernel")],
+)  # fmt: skip
+def test_training_batch_equals_the_torch_path(field32, spectra3, monkeypatch, threads, blend, sigma):  # fmt: skip
     """A differentiable batch through the compiled step against the torch path (ranking by
-    node matmul, autograd through the pairs and per-kernel terms)."""
+    node matmul, autograd through the pairs and per-kernel terms); with a sigma per kernel
+    (``log_sigma``'s gradient too)."""
     monkeypatch.setattr(fused_rank, "THREAD_MIN_POINTS", 200)
     monkeypatch.setattr(fused_pairs, "THREAD_MIN_POINTS", 200)
     monkeypatch.setattr(fused_terms, "THREAD_MIN_KERNELS", 100)
     kp = make_params(spectra3, 300, seed=21)
-    config = replace(CONFIG, blend=blend)
+    config = replace(CONFIG, blend=blend, sigma=sigma)
     if blend == "layered":
         kp["priority"] = np.random.default_rng(4).uniform(-3, 3, 300)
+    if sigma == "per_kernel":
+        kp["sigma_ratio"] = np.exp(np.random.default_rng(4).uniform(-0.9, 0.9, 300))
     f, b = _points(spectra3, 900, 6)
     target = torch.rand((900, 3), generator=torch.Generator().manual_seed(3))
     old = torch.get_num_threads()

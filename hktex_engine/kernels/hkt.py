@@ -20,7 +20,7 @@ difference needs (version 2: the ids themselves), two barycentrics on the simple
 midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
 own range. Version 4 puts the packed members' deflate streams one after another in a single
 stored member ``codes.bin`` and the base colour in the manifest; versions 2 and 3 kept one
-``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 6; a version-1 file is
+``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 8; a version-1 file is
 written unless quantisation is asked for, so older readers keep reading what they read before.
 
 A set for the layered blend (``KernelConfig.blend = "layered"``, ``kernels.blending``) has one

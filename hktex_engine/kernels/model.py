@@ -143,8 +143,7 @@ class KernelSet:
                 raise KernelSetError(f"member {name!r} contains NaN or infinity")
         if n == 0:
             raise KernelSetError("the kernel set is empty")
-        self._validate_priority(n)
-        self._validate_sigma_ratio(n)
+        self._validate_extensions(n)
         if np.asarray(self.face_ids).dtype.kind == "f":
             raise KernelSetError("member 'face_ids' must be integers")
         fid = np.asarray(self.face_ids)
@@ -168,35 +167,30 @@ class KernelSet:
         _check_range("colors", self.colors, COLOR_RANGE[0] - eps, COLOR_RANGE[1] + eps)
         _check_range("base_color", self.base_color, BASE_RANGE[0] - eps, BASE_RANGE[1] + eps)
 
-    def _validate_priority(self, n: int) -> None:
-        """A layered set carries one finite priority per kernel in range; a paper set none."""
-        layered = self.kernel_config.blend == "layered"
-        if self.priority is None:
-            if layered:
-                raise KernelSetError("a layered kernel set needs member 'priority'")
-            return
-        if not layered:
-            raise KernelSetError("member 'priority' belongs to the layered blend only")
-        arr = np.asarray(self.priority)
-        if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
-            raise KernelSetError(f"member 'priority' must be {n} finite floats")
-        lo, hi = PRIORITY_RANGE
-        _check_range("priority", arr, lo - 1e-2, hi + 1e-2)
-
-    def _validate_sigma_ratio(self, n: int) -> None:
-        """A per-kernel-sigma set carries one finite ratio per kernel in range; others none."""
-        per_kernel = self.kernel_config.per_kernel_sigma
-        if self.sigma_ratio is None:
-            if per_kernel:
-                raise KernelSetError("a per-kernel-sigma kernel set needs member 'sigma_ratio'")
-            return
-        if not per_kernel:
-            raise KernelSetError("member 'sigma_ratio' belongs to a per-kernel-sigma set only")
-        arr = np.asarray(self.sigma_ratio)
-        if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
-            raise KernelSetError(f"member 'sigma_ratio' must be {n} finite floats")
-        lo, hi = SIGMA_RATIO_RANGE
-        _check_range("sigma_ratio", arr, lo * (1 - 1e-3), hi * (1 + 1e-3))
+    def _validate_extensions(self, n: int) -> None:
+        """The extensions' rows: present exactly when the config uses them (a layered set's
+        ``priority``, a per-kernel-sigma set's ``sigma_ratio``), one finite value per kernel
+        in range (float16 storage rounds the ends by less than the slack)."""
+        lo_p, hi_p = PRIORITY_RANGE
+        lo_s, hi_s = SIGMA_RATIO_RANGE
+        rows = (
+            ("priority", self.kernel_config.blend == "layered", "the layered blend",
+             (lo_p - 1e-2, hi_p + 1e-2)),
+            ("sigma_ratio", self.kernel_config.per_kernel_sigma, "a per-kernel-sigma set",
+             (lo_s * (1 - 1e-3), hi_s * (1 + 1e-3))),
+        )  # fmt: skip
+        for name, used, owner, (lo, hi) in rows:
+            values = getattr(self, name)
+            if values is None:
+                if used:
+                    raise KernelSetError(f"a kernel set of {owner} needs member {name!r}")
+                continue
+            if not used:
+                raise KernelSetError(f"member {name!r} belongs to {owner} only")
+            arr = np.asarray(values)
+            if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
+                raise KernelSetError(f"member {name!r} must be {n} finite floats")
+            _check_range(name, arr, lo, hi)
 
 
 def _check_range(name: str, values: np.ndarray, lo: float, hi: float) -> None:
