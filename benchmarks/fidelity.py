@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from _machine import machine_info, machine_line
 
-from hktex_engine.config import SpectralConfig, fit_preset
+from hktex_engine.config import SIGMA_RATIO_RANGE, SpectralConfig, fit_preset
 from hktex_engine.evaluation.baselines import (
     MLPBaseline,
     VertexColorBaseline,
@@ -224,6 +224,7 @@ def run_one(
         ),
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
+        "sigma_ratio": sigma_ratio_stats(res.kernelset),
     }
     # bytes of the file as written (the fit's metrics measure the set before its provenance
     # is attached: ~1 KB less)
@@ -283,6 +284,23 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
         measure_file(r, load_hkt(path), mesh, spectra, f, b, target, curve)
         print(r["mesh"], r["run"], r.get("quantised_auto"), flush=True)
     jsonl.write_text("".join(json.dumps(r) + "\n" for r in rows))
+
+
+def sigma_ratio_stats(ks) -> dict | None:
+    """A per-kernel-sigma set's learnt ``sigma_j / sigma_B``: quantiles and the shares at the
+    box's ends (None for a §4 set)."""
+    if ks.sigma_ratio is None:
+        return None
+    r = np.asarray(ks.sigma_ratio, dtype=np.float64)
+    lo, hi = SIGMA_RATIO_RANGE
+    q = np.quantile(r, [0.1, 0.5, 0.9])
+    return {
+        "p10": float(q[0]),
+        "p50": float(q[1]),
+        "p90": float(q[2]),
+        "at_low": float(np.mean(r <= lo * 1.001)),
+        "at_high": float(np.mean(r >= hi * 0.999)),
+    }
 
 
 def measure_file(row: dict, ks, mesh, spectra, f, b, target, curve) -> None:
