@@ -93,6 +93,7 @@ def main() -> int:
     args = ap.parse_args()
     command = "python benchmarks/mlp_spread.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     jsonl, md = args.out / "mlp_spread.jsonl", args.out / "mlp_spread.md"
+    args.out.mkdir(parents=True, exist_ok=True)  # a fresh --out directory
     sources = mesh_sources(args.mesh_file)
     names = mesh_file_names(args.mesh_file, args.meshes)
     if not names:
