@@ -245,7 +245,7 @@ def bench_train(base_model_cls, base_field, ks: KernelSet, field, spectra, args,
         out = model.albedo(f, b)
         ((out - target) ** 2).mean().backward()
         outs[name] = out.detach()
-        grads[name] = {n: p.grad.clone() for n, p in model.named_parameters()}
+        grads[name] = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
     times: dict = {n: [] for n in variants}
     load_before = load_now()
     for _ in range(args.rounds):
