@@ -193,6 +193,8 @@ class FitParams:
     lr_priority: float = 0.02
     #: Adam's rate on ``log(sigma_j / sigma_b)`` (``KernelConfig.sigma = "per_kernel"`` only)
     lr_sigma: float = 0.01
+    #: a per-kernel sigma stays sigma_B (every ratio 1) before this fraction of the steps
+    sigma_start: float = 0.0
     #: the layered blend's priorities stay 0 (the paper's blend) before this fraction of steps
     priority_start: float = 0.0
     center_momentum: float = 0.0

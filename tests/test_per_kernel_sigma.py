@@ -257,6 +257,25 @@ def test_a_fit_learns_the_scales_and_keeps_them_through_density_control():
     np.testing.assert_allclose(a.numpy(), c.numpy(), atol=1e-5)
 
 
+def test_scales_wait_for_their_start():
+    """``sigma_start``: the optimiser keeps every ratio at 1 before that fraction of the steps,
+    and trains them after it."""
+    from hktex_engine.fitting.uv import fit_uv
+    from hktex_engine.spectra.grid import compute_spectra
+    from tests.test_fit_uv import TINY, two_colour_sphere
+
+    mesh = two_colour_sphere()
+    spectra = compute_spectra(mesh, TINY)
+    base = {"preset": "sigma", "kernels": 40, "steps": 20, "points_per_step": 128, "seed": 2}
+    base["densify"] = False
+    never = fit_uv(mesh, spectra, fit_params_from({**base, "sigma_start": 1.0}), eval_points=300)
+    assert np.all(never.kernelset.sigma_ratio == 1)
+    late = fit_uv(mesh, spectra, fit_params_from({**base, "sigma_start": 0.5}), eval_points=300)
+    moved = np.abs(np.log(late.kernelset.sigma_ratio)).max()
+    # ten steps at lr_sigma: an Adam step is at most (1 - b1) / sqrt(1 - b2) ~ 3.2 lr
+    assert 0 < moved <= 10 * 0.01 * 3.2 + 1e-6
+
+
 def test_clones_and_appended_kernels_carry_their_scale(field64, case):
     kp = case[0]
     model = make_model(field64, kp, PER_KERNEL)

@@ -429,6 +429,8 @@ class KernelOptimiser:
         attrs = {k: v for k, v in tensors.items() if k in self.adam.lrs}
         if step_index < self.params.priority_start * self.params.steps:
             attrs.pop("priority", None)  # footprints first, layers after (FitParams)
+        if step_index < self.params.sigma_start * self.params.steps:
+            attrs.pop("log_sigma", None)  # likewise a per-kernel sigma (FitParams)
         self.adam.step(attrs, scale)
         self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad

@@ -87,6 +87,12 @@ class FitParamsIn(_Strict):
     lr_sigma: float | None = Field(
         None, gt=0, le=10, description="'sigma' preset: Adam's rate on each log(sigma_j / sigma_B)"
     )
+    sigma_start: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="'sigma' preset: fraction of the steps before the scales train",
+    )
     priority_start: float | None = Field(
         None, ge=0, le=1, description="layered blend: fraction of the steps before priorities train"
     )
