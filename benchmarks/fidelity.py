@@ -107,6 +107,17 @@ def load_source(source: tuple[Path, Path | None]):
     return load_mesh(obj, texture=tex)
 
 
+def named_mesh_and_spectra(mesh_files: list[str], name: str, k: int):
+    """``(mesh, spectra)`` of a shared mesh or a ``--mesh-file`` name, its spectra (the
+    default 7-angle grid at ``k``) from the user's cache; an unknown name exits with the list."""
+    sources = mesh_sources(mesh_files)
+    if name not in sources:
+        raise SystemExit(f"unknown mesh {name!r}; choose from {sorted(sources)}")
+    mesh = load_source(sources[name])
+    cache = SpectraCache(Path.home() / ".cache/hktex/spectra")
+    return mesh, cache.get_or_compute(mesh, SpectralConfig(angles=7, k=k))
+
+
 def parse_run(spec: str) -> tuple[str, dict]:
     """``PRESET[+polish][:JSON]`` -> (label, FitParams overrides incl. ``preset``)."""
     head, _, js = spec.partition(":")

@@ -35,12 +35,11 @@ from _machine import machine_info, machine_line
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from hktex_engine.config import DEFAULT_SIGMA_B, SpectralConfig, fit_preset
+from hktex_engine.config import DEFAULT_SIGMA_B, fit_preset
 from hktex_engine.evaluation.metrics import surface_samples
 from hktex_engine.fitting.optimise import face_unit_normals, theta_in_faces
 from hktex_engine.geometry.sampling import points_from_barycentric
 from hktex_engine.kernels.model import HeatKernelModel
-from hktex_engine.spectra.grid import SpectraCache
 from hktex_engine.spectra.interpolation import SpectralField
 
 #: texels darker than this (mean RGB) make up the features
@@ -106,7 +105,7 @@ def footprint(model_args: dict, field, f, b, pts) -> dict:
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).parent))
-    from fidelity import add_mesh_file_argument, load_source, mesh_sources
+    from fidelity import add_mesh_file_argument, named_mesh_and_spectra
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mesh", default="blub", help="a shared mesh or a --mesh-file name")
@@ -116,13 +115,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results"))
     args = ap.parse_args()
 
-    sources = mesh_sources(args.mesh_file)
-    if args.mesh not in sources:
-        raise SystemExit(f"unknown mesh {args.mesh!r}; choose from {sorted(sources)}")
-    mesh = load_source(sources[args.mesh])
-    spectra = SpectraCache(Path.home() / ".cache/hktex/spectra").get_or_compute(
-        mesh, SpectralConfig(angles=7, k=args.k)
-    )
+    mesh, spectra = named_mesh_and_spectra(args.mesh_file, args.mesh, args.k)
     field = SpectralField(spectra)
     f, b, target = surface_samples(mesh, 400_000, 1)
     pts = points_from_barycentric(mesh.vertices, mesh.faces, f, b)

@@ -31,13 +31,11 @@ from pathlib import Path
 import numpy as np
 from _machine import machine_info
 
-from hktex_engine.config import SpectralConfig
 from hktex_engine.evaluation.diagnostics import edge_flat_split
 from hktex_engine.evaluation.metrics import psnr, surface_samples
 from hktex_engine.fitting.uv import evaluate_albedo
 from hktex_engine.kernels.hkt import load_hkt
 from hktex_engine.kernels.model import SHARPNESS_RANGE, HeatKernelModel, KernelSet
-from hktex_engine.spectra.grid import SpectraCache
 from hktex_engine.spectra.interpolation import SpectralField
 
 #: A kernel whose threshold is above this draws a footprint under ~0.45 sigma_B in radius.
@@ -71,7 +69,7 @@ def score(mesh, field: SpectralField, ks: KernelSet, points: tuple) -> dict:
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).parent))
-    from fidelity import add_mesh_file_argument, load_source, mesh_sources
+    from fidelity import add_mesh_file_argument, named_mesh_and_spectra
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mesh", required=True, help="a shared mesh or a --mesh-file name")
@@ -84,12 +82,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/rescore.jsonl"))
     args = ap.parse_args()
 
-    sources = mesh_sources(args.mesh_file)
-    if args.mesh not in sources:
-        raise SystemExit(f"unknown mesh {args.mesh!r}; choose from {sorted(sources)}")
-    mesh = load_source(sources[args.mesh])
-    cache = SpectraCache(Path.home() / ".cache/hktex/spectra")
-    field = SpectralField(cache.get_or_compute(mesh, SpectralConfig(angles=7, k=args.k)))
+    mesh, spectra = named_mesh_and_spectra(args.mesh_file, args.mesh, args.k)
+    field = SpectralField(spectra)
     points = surface_samples(mesh, 60_000, 0)
     ks = load_hkt(args.hkt)
     cfg = ks.kernel_config

@@ -22,13 +22,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from hktex_engine.config import SpectralConfig
 from hktex_engine.fitting.uv import evaluate_albedo
 from hktex_engine.kernels.hkt import load_hkt
 from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.render.bake import rasterize_uv
 from hktex_engine.render.errormap import DEFAULT_SCALE, heat_colors, resample_texture
-from hktex_engine.spectra.grid import SpectraCache
 from hktex_engine.spectra.interpolation import SpectralField
 
 #: Bake size and the stride of the search for the worst texel (every 4th texel each way).
@@ -61,7 +59,7 @@ def window_rows(mesh, field, sets: list[Path], width: int) -> tuple[np.ndarray, 
 
 def main() -> int:
     sys.path.insert(0, str(Path(__file__).parent))
-    from fidelity import add_mesh_file_argument, load_source, mesh_sources
+    from fidelity import add_mesh_file_argument, named_mesh_and_spectra
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--mesh", required=True, help="a shared mesh or a --mesh-file name")
@@ -74,13 +72,7 @@ def main() -> int:
 
     from PIL import Image
 
-    sources = mesh_sources(args.mesh_file)
-    if args.mesh not in sources:
-        raise SystemExit(f"unknown mesh {args.mesh!r}; choose from {sorted(sources)}")
-    mesh = load_source(sources[args.mesh])
-    spectra = SpectraCache(Path.home() / ".cache/hktex/spectra").get_or_compute(
-        mesh, SpectralConfig(angles=7, k=args.k)
-    )
+    mesh, spectra = named_mesh_and_spectra(args.mesh_file, args.mesh, args.k)
     field = SpectralField(spectra, device="cpu", dtype=torch.float32)
     strip, rms = window_rows(mesh, field, args.sets, args.width)
     im = Image.fromarray(np.round(np.clip(strip, 0, 1) * 255).astype(np.uint8))

@@ -231,7 +231,7 @@ def test_pair_blend_against_autograd(layered, scaled):
     np.testing.assert_allclose(coef32.grad.numpy(), coef64.grad.numpy(), atol=2e-5 * scale)
 
 
-def _step_grads(model, f, b, target):
+def step_grads(model, f, b, target):
     model.zero_grad()
     out, aux = model.albedo(f, b, return_aux=True)
     ((out - target) ** 2).mean().backward()
@@ -262,9 +262,9 @@ def test_training_batch_equals_the_torch_path(field32, spectra3, monkeypatch, th
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        got = _step_grads(make_model(field32, kp, config), f, b, target)
+        got = step_grads(make_model(field32, kp, config), f, b, target)
         monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
-        ref = _step_grads(make_model(field32, kp, config), f, b, target)
+        ref = step_grads(make_model(field32, kp, config), f, b, target)
     finally:
         torch.set_num_threads(old)
     np.testing.assert_allclose(got[0].numpy(), ref[0].numpy(), atol=1e-5)

@@ -91,6 +91,20 @@ def reference_albedo(spectra, kp, config, face_ids, bary):
     return out, rho
 
 
+def assert_float64_paths_match(model, face_ids, bary, ref):
+    """Every float64 albedo path of ``model``: brute force over all kernels equals ``ref`` (the
+    numpy reading); with the K_s cut (the exact nearest centres) the index, tables and grad
+    paths agree with each other."""
+    with torch.no_grad():
+        brute = model.albedo_bruteforce(face_ids, bary)
+        exact = model.albedo_bruteforce(face_ids, bary, exact_search=True)
+        knn = model.albedo(face_ids, bary)
+    np.testing.assert_allclose(brute.numpy(), ref, atol=1e-9)
+    np.testing.assert_allclose(knn.numpy(), exact.numpy(), atol=1e-12)
+    grad_path = model.albedo(face_ids, bary)
+    np.testing.assert_allclose(grad_path.detach().numpy(), exact.numpy(), atol=1e-12)
+
+
 # ------------------------------------------------------------------ tests
 def test_soft_step_ends_monotone_and_clamped():
     eps = torch.tensor([0.3, 0.5, 0.9, 0.9999], dtype=torch.float64)[:, None]

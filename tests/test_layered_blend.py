@@ -19,7 +19,13 @@ from hktex_engine.kernels import model as kernels_mod
 from hktex_engine.kernels.hkt import encode_hkt, load_hkt
 from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_points
-from tests.test_kernels import CONFIG, make_model, make_params, reference_albedo
+from tests.test_kernels import (
+    CONFIG,
+    assert_float64_paths_match,
+    make_model,
+    make_params,
+    reference_albedo,
+)
 
 LAYERED = replace(CONFIG, blend="layered")
 
@@ -51,16 +57,7 @@ def test_every_float64_path_matches_the_numpy_reading(spectra, field64, layered_
     paper = reference_albedo(spectra, kp, CONFIG, face_ids, bary)[0]
     assert np.abs(ref - paper).max() > 0.05, "priorities must change colours here"
     assert ((rho > 0).sum(axis=1) > 1).mean() > 0.5, "points must have overlapping kernels"
-    model = make_model(field64, kp, LAYERED)
-    with torch.no_grad():
-        brute = model.albedo_bruteforce(face_ids, bary)
-        exact = model.albedo_bruteforce(face_ids, bary, exact_search=True)
-        knn = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(brute.numpy(), ref, atol=1e-9)  # every kernel a candidate
-    # with the K_s cut (the exact nearest centres) the index, tables and grad paths agree
-    np.testing.assert_allclose(knn.numpy(), exact.numpy(), atol=1e-12)
-    grad_path = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(grad_path.detach().numpy(), exact.numpy(), atol=1e-12)
+    assert_float64_paths_match(make_model(field64, kp, LAYERED), face_ids, bary, ref)
 
 
 @pytest.mark.parametrize("fused", [True, False])

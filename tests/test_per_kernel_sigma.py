@@ -23,7 +23,14 @@ from hktex_engine.kernels import model as kernels_mod
 from hktex_engine.kernels.hkt import encode_hkt, load_hkt
 from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_points, tiny_spectra
-from tests.test_kernels import CONFIG, make_model, make_params, reference_albedo
+from tests.test_fused_training import step_grads
+from tests.test_kernels import (
+    CONFIG,
+    assert_float64_paths_match,
+    make_model,
+    make_params,
+    reference_albedo,
+)
 
 PER_KERNEL = replace(CONFIG, sigma="per_kernel")
 HAVE_COMPILED = compiled.available(torch.device("cpu"), torch.float32)
@@ -46,14 +53,7 @@ def test_every_float64_path_matches_the_numpy_reading(spectra, field64, case):
     model = make_model(field64, kp, PER_KERNEL)
     got_rho, _ = model.responses(face_ids, bary)  # with a graph
     np.testing.assert_allclose(got_rho.detach().numpy(), rho, atol=1e-9)
-    with torch.no_grad():
-        brute = model.albedo_bruteforce(face_ids, bary)
-        exact = model.albedo_bruteforce(face_ids, bary, exact_search=True)
-        knn = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(brute.numpy(), ref, atol=1e-9)  # every kernel a candidate
-    np.testing.assert_allclose(knn.numpy(), exact.numpy(), atol=1e-12)
-    grad_path = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(grad_path.detach().numpy(), exact.numpy(), atol=1e-12)
+    assert_float64_paths_match(model, face_ids, bary, ref)
 
 
 @pytest.mark.parametrize("fused", [True, False])
@@ -80,14 +80,6 @@ def test_float32_query_paths_match(case, spectra, field64, fused, table_path, mo
     np.testing.assert_allclose(got.numpy(), ref, atol=2e-5)
 
 
-def _step(model, f, b, target):
-    model.zero_grad()
-    out, aux = model.albedo(f, b, return_aux=True)
-    ((out - target) ** 2).mean().backward()
-    grads = {n: p.grad.detach().clone() for n, p in model.named_parameters() if p.requires_grad}
-    return out.detach(), aux, grads
-
-
 @pytest.fixture(scope="module")
 def spectra3():
     return tiny_spectra(3)
@@ -103,7 +95,7 @@ def test_ratios_of_one_are_the_uniform_set_bit_for_bit(spectra3, monkeypatch):
     target = torch.rand((900, 3), generator=torch.Generator().manual_seed(3))
     ones = {**kp, "sigma_ratio": np.ones(300)}
     uniform, scaled = make_model(field, kp, CONFIG), make_model(field, ones, PER_KERNEL)
-    ref, got = _step(uniform, f, b, target), _step(scaled, f, b, target)
+    ref, got = step_grads(uniform, f, b, target), step_grads(scaled, f, b, target)
     assert torch.equal(got[0], ref[0]) and torch.equal(got[1]["indices"], ref[1]["indices"])
     for name, g in ref[2].items():
         assert torch.equal(got[2][name], g), name

@@ -12,8 +12,8 @@ Phi_p[n_jc]``:
 and backward by the chain rule through each line from ``d loss / d rho``, with ``dh/dcoef_j =
 blend`` and ``dh/dw_jc = dots_c``; the clamp passes the gradient where torch's does (inside,
 ends included). Gradients reach the per-kernel rows (coef, norm, weights, centre embedding,
-threshold, sharpness, and ``scale`` for a per-kernel-sigma set); the point side is constant (batches whose query barycentrics need a
-gradient take the torch path). The colour blend after it (``kernels.blending``) is a few
+threshold, sharpness, and ``scale`` for a per-kernel-sigma set); the point side is constant
+(batches whose query barycentrics need a gradient take the torch path). The colour blend after it (``kernels.blending``) is a few
 ``(P, K_c)`` torch operations, so it stays in torch and either blend rule trains through it.
 
 Why hand-written: through autograd these are a dozen passes over ``(P, K_c, K)`` and

@@ -115,7 +115,6 @@ CODES_MEMBER = "codes.bin"
 PACKED = tuple(name for name in MEMBERS if name != "base_color")
 #: A layered set's members: the paper's and one priority per kernel.
 LAYERED_MEMBERS: dict[str, int] = {**MEMBERS, "priority": 0}
-LAYERED_PACKED = (*PACKED, "priority")
 #: Every member a file may hold (the extensions' in their stored order, last).
 ALL_MEMBERS: dict[str, int] = {**LAYERED_MEMBERS, "sigma_ratio": 0}
 COLOR_SPACES = ("srgb", "linear")
