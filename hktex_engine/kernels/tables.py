@@ -215,13 +215,28 @@ def _vertex_responses(field, verts, kid, terms) -> torch.Tensor:
         rows = rows.view(p1 - p0, PATCH, g_n, k).transpose(1, 2).reshape(-1, PATCH, k)
         block = block.view(-1, m_max, k)
         dots = torch.bmm(block, rows.transpose(1, 2))  # ((p, g), m_max, PATCH)
-        picked = dots.view(-1, PATCH).index_select(0, rows_in)  # (n_sel, PATCH)
-        values.index_add_(0, ent_sorted[a:b], picked * w_sorted[a:b, None])
+        picked = dots.view(-1, PATCH).index_select(0, rows_in) * w_sorted[a:b, None]
+        _add_corners(values, ent_sorted[a:b], gorder[a:b] % 4, picked)
     # back to the vertex tables: entry of (patch(v), kid) for each valid slot
     flat = torch.zeros(valid.shape, dtype=torch.long, device=dev)
     flat[valid] = inverse
     out = values.view(-1)[flat * PATCH + local_of[:, None]]
     return torch.where(valid, out, torch.zeros_like(out))
+
+
+def _add_corners(
+    values: torch.Tensor, entry: torch.Tensor, corner: torch.Tensor, terms: torch.Tensor
+) -> None:
+    """``values[entry] += terms``, summing each entry's four corner terms in corner order.
+
+    One pass per corner, so no index repeats within a pass: CUDA's ``index_add_`` adds
+    repeated indices by atomics in no fixed order, which gave clones (equal kernels) responses
+    a bit apart and broke the tie rule's index order among them (tests/test_cuda.py, measured
+    on an H200). The same order on every device, so clones stay bit-equal everywhere.
+    """
+    for c in range(4):
+        mask = corner == c
+        values.index_add_(0, entry[mask], terms[mask])
 
 
 def _morton_order(points: torch.Tensor) -> torch.Tensor:
