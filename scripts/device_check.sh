@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The checks that need a CUDA device, as one command for a lent GPU machine (docs/cuda.md):
 # the CUDA tests (tests/test_cuda.py), then benchmarks/kernels_cuda.py's default UV fit and
-# its query and training sections; TEST_S, FIT_S, BENCH_S limit each (seconds, 0 skips). Runs under the machine's own python3 and torch; the two
-# packages its image lacks (trimesh, libigl) travel as wheels in .whl/ (docs/cuda.md says
-# how to fetch them). Writes logs, JUnit XML and the benchmark JSON/Markdown to $1 (or $OUT).
+# its query and training sections; TEST_S, FIT_S, BENCH_S limit each (seconds, 0 skips).
+# Runs under the machine's own python3 and torch; the packages its image lacks (trimesh,
+# libigl, faiss-cpu) travel as wheels in .whl/ (docs/cuda.md says how to fetch them).
+# Writes logs, JUnit XML and the benchmark JSON/Markdown to $1 (or $OUT).
 set -u
 out=${1:-${OUT:?give an output folder}}
 mkdir -p "$out"
