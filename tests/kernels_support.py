@@ -13,7 +13,7 @@ import numpy as np
 import scipy.linalg
 import trimesh
 
-from hktex_engine.config import SpectralConfig
+from hktex_engine.config import KernelConfig, SpectralConfig
 from hktex_engine.spectra.grid import Spectra
 
 TINY_CONFIG = SpectralConfig(angles=3, anisotropies=(1.0, 10.0), k=16, k_iso=9)
@@ -111,3 +111,23 @@ def random_kernels(spectra: Spectra, n: int, seed: int = 0) -> dict[str, np.ndar
 def random_points(spectra: Spectra, p: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     return rng.integers(0, spectra.faces.shape[0], size=p), rng.dirichlet(np.ones(3), size=p)
+
+
+def kernelset_of(spectra: Spectra, kp: dict, config: KernelConfig):
+    """A ``KernelSet`` of the parameters ``kp`` (``random_kernels``' keys) on ``spectra``."""
+    from hktex_engine.kernels.model import KernelSet
+
+    return KernelSet(
+        face_ids=kp["face_ids"],
+        barycentrics=kp["bary"],
+        theta=kp["theta"],
+        eta=kp["eta"],
+        threshold=kp["threshold"],
+        sharpness=kp["sharpness"],
+        colors=kp["colors"],
+        base_color=kp["base_color"],
+        kernel_config=config,
+        mesh_hash=spectra.mesh_hash,
+        config_hash=spectra.config_hash,
+        sigma_ratio=kp.get("sigma_ratio"),
+    )

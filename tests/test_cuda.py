@@ -26,11 +26,10 @@ from hktex_engine.geometry.sampling import (
     uv_at,
 )
 from hktex_engine.kernels import model as kernels_mod
-from hktex_engine.kernels.model import KernelSet
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.spectra.grid import compute_spectra
 from hktex_engine.spectra.interpolation import SpectralField
-from tests.kernels_support import random_points
+from tests.kernels_support import kernelset_of, random_points
 from tests.test_fit_uv import TINY, two_colour_sphere
 from tests.test_fused_training import step_grads
 from tests.test_kernels import CONFIG, make_model, make_params, reference_albedo
@@ -47,23 +46,6 @@ PER_KERNEL = replace(CONFIG, sigma="per_kernel")
 
 def numpy_of(t: torch.Tensor) -> np.ndarray:
     return t.detach().cpu().numpy()
-
-
-def kernelset_of(spectra, kp: dict, config) -> KernelSet:
-    return KernelSet(
-        face_ids=kp["face_ids"],
-        barycentrics=kp["bary"],
-        theta=kp["theta"],
-        eta=kp["eta"],
-        threshold=kp["threshold"],
-        sharpness=kp["sharpness"],
-        colors=kp["colors"],
-        base_color=kp["base_color"],
-        kernel_config=config,
-        mesh_hash=spectra.mesh_hash,
-        config_hash=spectra.config_hash,
-        sigma_ratio=kp.get("sigma_ratio"),
-    )
 
 
 @pytest.fixture(scope="module")

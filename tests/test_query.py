@@ -12,10 +12,10 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from hktex_engine.config import KernelConfig
 from hktex_engine.errors import KernelSetError, QueryError
 from hktex_engine.kernels import tables as tables_mod
-from hktex_engine.kernels.model import HeatKernelModel, KernelSet
+from hktex_engine.kernels.model import HeatKernelModel
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.spectra.interpolation import SpectralField
-from tests.kernels_support import random_kernels, random_points, tiny_spectra
+from tests.kernels_support import kernelset_of, random_kernels, random_points, tiny_spectra
 
 CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=10, k_blend=4)
 
@@ -34,19 +34,7 @@ def spectra():
 def kernelset(spectra):
     kp = random_kernels(spectra, 40, seed=3)
     kp["threshold"] = np.random.default_rng(4).uniform(0.3, 0.6, 40)
-    return KernelSet(
-        face_ids=kp["face_ids"],
-        barycentrics=kp["bary"],
-        theta=kp["theta"],
-        eta=kp["eta"],
-        threshold=kp["threshold"],
-        sharpness=kp["sharpness"],
-        colors=kp["colors"],
-        base_color=kp["base_color"],
-        kernel_config=CONFIG,
-        mesh_hash=spectra.mesh_hash,
-        config_hash=spectra.config_hash,
-    )
+    return kernelset_of(spectra, kp, CONFIG)
 
 
 @pytest.fixture(scope="module")

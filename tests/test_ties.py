@@ -18,10 +18,10 @@ import torch
 
 from hktex_engine.config import KernelConfig
 from hktex_engine.kernels import model as kernels_mod
-from hktex_engine.kernels.model import KernelSet
 from hktex_engine.kernels.query import AlbedoQuery
 from hktex_engine.kernels.ranking import nearest_by_rule, select_by_rule
 from hktex_engine.spectra.interpolation import SpectralField
+from tests.kernels_support import kernelset_of
 from tests.test_kernels import make_model, make_params, reference_albedo
 
 CONFIG = KernelConfig(diffusion_time=0.01, sigma_b=0.3, k_search=12, k_blend=4)
@@ -149,19 +149,7 @@ def test_training_forward_follows_the_rule(spectra, tie_case, dtype):
 
 def test_query_follows_the_rule(spectra, tie_case):
     kp = tie_case["kp"]
-    ks = KernelSet(
-        face_ids=kp["face_ids"],
-        barycentrics=kp["bary"],
-        theta=kp["theta"],
-        eta=kp["eta"],
-        threshold=kp["threshold"],
-        sharpness=kp["sharpness"],
-        colors=kp["colors"],
-        base_color=kp["base_color"],
-        kernel_config=CONFIG,
-        mesh_hash=spectra.mesh_hash,
-        config_hash=spectra.config_hash,
-    )
+    ks = kernelset_of(spectra, kp, CONFIG)
     query = AlbedoQuery(spectra, ks, device="cpu")
     got = query.colors(tie_case["face_ids"], tie_case["bary"])
     keep = tie_case["clear"]
