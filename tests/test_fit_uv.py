@@ -295,14 +295,18 @@ def test_layered_preset_is_the_default_with_late_priorities():
 
 
 def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
-    """'sigma' differs from the default in the kernel config's ``sigma`` alone, and the flat
-    mapping the CLI and the API pass selects it by name."""
+    """'sigma' differs from the default in the kernel config's ``sigma`` and the scales' start
+    (0.4 of the steps, measured: docs/fitting.md, sixteenth pass) alone, and the flat mapping
+    the CLI and the API pass selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
     default, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
-    assert _differing(default, scaled) == {"kernel": replace(default.kernel, sigma="per_kernel")}
+    assert _differing(default, scaled) == {
+        "kernel": replace(default.kernel, sigma="per_kernel"),
+        "sigma_start": 0.4,
+    }
     assert default.kernel.sigma == "uniform" and not default.kernel.per_kernel_sigma
     assert fit_params_from({"preset": "sigma", "steps": 9}) == replace(scaled, steps=9)
 
