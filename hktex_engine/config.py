@@ -371,11 +371,19 @@ def fit_preset(name: str, **overrides) -> FitParams:
 def fit_params_from(values: dict) -> FitParams:
     """FitParams from a flat mapping (CLI flags, the API's ``params``): ``preset`` picks the
     base (default ``DEFAULT_PRESET``), every other known, non-None field overrides it
-    (``blend``: the kernel config's colour rule)."""
+    (``blend``: the kernel config's colour rule; ``sigma``: its biharmonic scale, where
+    ``"per_kernel"`` on a preset that learns none also takes the ``sigma`` preset's start
+    unless ``sigma_start`` is given, so ``dense`` + ``per_kernel`` is the measured pair)."""
     given = {
         k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
     }
     params = fit_preset(values.get("preset") or DEFAULT_PRESET, **given)
     if values.get("blend") is not None:  # a KernelConfig field, flat in flags and the API
         params = replace(params, kernel=replace(params.kernel, blend=values["blend"]))
+    sigma = values.get("sigma")
+    if sigma is not None:  # likewise
+        learnt_before = params.kernel.per_kernel_sigma
+        params = replace(params, kernel=replace(params.kernel, sigma=sigma))
+        if params.kernel.per_kernel_sigma and not learnt_before and "sigma_start" not in given:
+            params = replace(params, sigma_start=SIGMA_PRESET_START)
     return params

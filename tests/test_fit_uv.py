@@ -250,7 +250,7 @@ def test_api_choices_are_the_engines():
 
     from hktex_server.api.schemas import FitParamsIn
 
-    from hktex_engine.config import BLENDS, PRESETS
+    from hktex_engine.config import BLENDS, PRESETS, SIGMAS
 
     def choices(name: str) -> set:
         (literal, _none) = get_args(FitParamsIn.model_fields[name].annotation)
@@ -258,6 +258,7 @@ def test_api_choices_are_the_engines():
 
     assert choices("preset") == set(PRESETS)
     assert choices("blend") == set(BLENDS)
+    assert choices("sigma") == set(SIGMAS)
 
 
 def test_default_preset_is_later_with_only_the_measured_changes():
@@ -324,6 +325,38 @@ def test_dense_preset_is_the_default_with_a_lower_densification_threshold():
     assert default.density.error_threshold > dense.density.error_threshold
     assert dense.kernel.blend == "paper"
     assert fit_params_from({"preset": "dense", "steps": 9}) == replace(dense, steps=9)
+
+
+def test_a_scale_per_kernel_combines_with_any_preset():
+    """``sigma`` (flag and API field) turns the scale per kernel on any preset, with the
+    ``sigma`` preset's start unless one is given: ``dense`` + ``per_kernel`` is exactly the
+    pair measured in docs/fitting.md; and ``uniform`` turns the ``sigma`` preset back to §4."""
+    import argparse
+    from dataclasses import replace
+
+    from hktex_engine.cli import cmd_fit
+    from hktex_engine.config import PRESETS, SIGMA_PRESET_START, fit_params_from
+
+    dense, scaled = PRESETS["dense"], PRESETS["sigma"]
+    pair = replace(dense, kernel=replace(dense.kernel, sigma="per_kernel"), sigma_start=0.4)
+    assert SIGMA_PRESET_START == 0.4 and dense.sigma_start == 0.0
+    assert fit_params_from({"preset": "dense", "sigma": "per_kernel"}) == pair
+    given = fit_params_from({"preset": "dense", "sigma": "per_kernel", "sigma_start": 0.1})
+    assert given == replace(pair, sigma_start=0.1)
+    assert fit_params_from({"preset": "sigma", "sigma": "per_kernel"}) == scaled
+    back = fit_params_from({"preset": "sigma", "sigma": "uniform"})
+    assert back.kernel == PRESETS["default"].kernel
+    with pytest.raises(ValueError, match="sigma must be one of"):
+        fit_params_from({"sigma": "per_vertex"})
+
+    parser = argparse.ArgumentParser()
+    cmd_fit.register(parser.add_subparsers())
+    args = parser.parse_args(
+        ["fit", "m.obj", "-o", "x.hkt", "--preset", "dense", "--sigma", "per_kernel"]
+    )
+    assert cmd_fit._params(args) == pair
+    with pytest.raises(SystemExit):
+        parser.parse_args(["fit", "m.obj", "-o", "x.hkt", "--sigma", "per_vertex"])
 
 
 def test_spectra_k_follows_the_preset(monkeypatch, tmp_path):

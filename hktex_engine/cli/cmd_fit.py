@@ -11,6 +11,7 @@ from hktex_engine.config import (
     DEFAULT_PRESET,
     PRESET_SPECTRA_K,
     PRESETS,
+    SIGMAS,
     FitParams,
     SpectralConfig,
     fit_params_from,
@@ -63,6 +64,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         " writes .hkt version 5/6, docs/kernels.md)",
     )
     p.add_argument(
+        "--sigma",
+        choices=SIGMAS,
+        default=None,
+        help="biharmonic scale: uniform (§4's one sigma_B) or per_kernel (learnt from 40 %% of the steps;"
+        " writes .hkt version 7/8, which a §4-5 reader cannot score; with --preset dense the"
+        " pair measured above the MLP on blub, docs/fitting.md)",
+    )
+    p.add_argument(
         "--polish-colors",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -110,6 +119,7 @@ def _params(args: argparse.Namespace) -> FitParams:
             "polish_colors": args.polish_colors,
             "sampling": args.sampling,
             "blend": args.blend,
+            "sigma": args.sigma,
         }
     )
     if params.kernels < 1 or params.steps < 0 or params.points_per_step < 1:

@@ -69,6 +69,12 @@ class FitParamsIn(_Strict):
         description="colour rule: ALGORITHM.md §5's average, or 'layered' (a learnable priority"
         " per kernel, .hkt version 5/6; docs/kernels.md)",
     )
+    sigma: Literal["uniform", "per_kernel"] | None = Field(
+        None,
+        description="biharmonic scale: ALGORITHM.md §4's one sigma_B, or 'per_kernel' (learnt from"
+        " 0.4 of the steps unless sigma_start is given; .hkt versions 7/8, which a §4-5 reader"
+        " cannot score; with preset 'dense' the pair above the MLP on blub, docs/fitting.md)",
+    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)
