@@ -378,12 +378,11 @@ def fit_params_from(values: dict) -> FitParams:
         k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
     }
     params = fit_preset(values.get("preset") or DEFAULT_PRESET, **given)
-    if values.get("blend") is not None:  # a KernelConfig field, flat in flags and the API
-        params = replace(params, kernel=replace(params.kernel, blend=values["blend"]))
-    sigma = values.get("sigma")
-    if sigma is not None:  # likewise
+    # KernelConfig fields, flat in flags and the API
+    flat = {k: values[k] for k in ("blend", "sigma") if values.get(k) is not None}
+    if flat:
         learnt_before = params.kernel.per_kernel_sigma
-        params = replace(params, kernel=replace(params.kernel, sigma=sigma))
+        params = replace(params, kernel=replace(params.kernel, **flat))
         if params.kernel.per_kernel_sigma and not learnt_before and "sigma_start" not in given:
             params = replace(params, sigma_start=SIGMA_PRESET_START)
     return params
