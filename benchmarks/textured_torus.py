@@ -13,6 +13,11 @@ circles, and a procedural texture holding what fits find hard and easy side by s
 - twelve small dark dots a few faces across (the small-feature case of blub's eyes);
 - a thin light stripe around the top (a feature narrower than its faces are long).
 
+``--texture smooth`` writes the issue's second lead instead (a held-out real asset of
+2,108 vertices, "mostly smooth shading, a sharp eye", where vertex colours are strongest):
+soft baked-light shading over a skin tone and one sharp dark eye with a white highlight, best
+on a coarse grid (``--major 48 --minor 44``: 2,112 vertices).
+
 Writes ``torus.obj`` (positions, UVs, faces) and ``torus_texture.png``; fit it with
 ``python benchmarks/fidelity.py --mesh-file torus=DIR/torus.obj,DIR/torus_texture.png``.
 """
@@ -81,14 +86,34 @@ def albedo(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
-def texture(size: int) -> np.ndarray:
+def smooth_albedo(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The second lead's kind of asset: baked-light shading (a soft key light around the minor
+    circle, a slow variation around the major one) over one skin tone, and one sharp eye, an
+    ellipse with a white highlight, about 0.2 % of the atlas."""
+    a, b = 2 * np.pi * u, 2 * np.pi * v
+    light = (0.5 + 0.5 * np.cos(b - 1.2)) ** 1.5
+    shade = (0.35 + 0.65 * light) * (0.9 + 0.1 * np.cos(3 * a))
+    rgb = np.array([0.86, 0.62, 0.5]) * shade[..., None]
+    rgb[..., 2] += 0.08 * (1 - light)  # cooler in the shadow: a hue ramp, not only brightness
+    su = ((u - 0.1 + 0.5) % 1.0 - 0.5) * 2.5  # signed; the major circle is ~2.5x longer
+    eye = (su / 0.05) ** 2 + ((v - 0.3) / 0.03) ** 2 < 1
+    rgb[eye] = [0.1, 0.07, 0.06]
+    rgb[(su - 0.015) ** 2 + (v - 0.308) ** 2 < 0.009**2] = [0.97, 0.97, 0.95]
+    return np.clip(rgb, 0.0, 1.0)
+
+
+#: The procedural textures ``--texture`` picks from.
+TEXTURES = {"mixed": albedo, "smooth": smooth_albedo}
+
+
+def texture(size: int, kind: str = "mixed") -> np.ndarray:
     """The albedo sampled at texel centres, row 0 at the top (OBJ's v = 1)."""
     px = (np.arange(size) + 0.5) / size
     u, v_img = np.meshgrid(px, px, indexing="xy")
-    return albedo(u, 1.0 - v_img)
+    return TEXTURES[kind](u, 1.0 - v_img)
 
 
-def write(out: Path, n_major: int, n_minor: int, size: int) -> Path:
+def write(out: Path, n_major: int, n_minor: int, size: int, kind: str = "mixed") -> Path:
     positions, uvs, faces = torus_with_uvs(n_major, n_minor)
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in positions]
@@ -97,7 +122,7 @@ def write(out: Path, n_major: int, n_minor: int, size: int) -> Path:
         "f " + " ".join(f"{p + 1}/{t + 1}" for p, t in zip(fp, ft, strict=True)) for fp, ft in faces
     ]
     (out / "torus.obj").write_text("\n".join(lines) + "\n")
-    img = (texture(size) * 255 + 0.5).astype(np.uint8)
+    img = (texture(size, kind) * 255 + 0.5).astype(np.uint8)
     Image.fromarray(img).save(out / "torus_texture.png")
     return out / "torus.obj"
 
@@ -108,8 +133,9 @@ def main() -> None:
     ap.add_argument("--major", type=int, default=128, help="vertices around the major circle")
     ap.add_argument("--minor", type=int, default=64, help="vertices around the minor circle")
     ap.add_argument("--size", type=int, default=1024, help="texture side in texels")
+    ap.add_argument("--texture", choices=sorted(TEXTURES), default="mixed")
     args = ap.parse_args()
-    print(write(args.out, args.major, args.minor, args.size))
+    print(write(args.out, args.major, args.minor, args.size, args.texture))
 
 
 if __name__ == "__main__":
