@@ -14,6 +14,10 @@ points (EVALUATION.md: 60,000 area-uniform points, seed 0), beside the set as fi
 - ``--search-blend KS:KC``: the set evaluated with another candidate count ``K_s`` and
   blend count ``K_c`` than it was fitted with (ALGORITHM.md section 5). A change shows how
   much the fitted colours depend on the cut.
+- ``--sigma-clamp C``, on a set with a scale per kernel (``sigma_ratio``, ``.hkt`` 7/8): the
+  ratios clamped, ``narrow`` = none above 1 (only the kernels that learnt a wider scale
+  lose it), ``wide`` = none below 1, ``one`` = all 1 (the §4 scale for every kernel). Which
+  side of the learnt scales carries the gain.
 
 Rows (with the machine and command) go to ``--out`` as JSON lines; nothing is refitted, so a
 row costs seconds. Used in docs/fitting.md's thirteenth pass.
@@ -55,6 +59,16 @@ def with_counts(ks: KernelSet, k_search: int, k_blend: int) -> KernelSet:
     return replace(ks, kernel_config=replace(ks.kernel_config, k_search=k_search, k_blend=k_blend))
 
 
+def sigma_clamped(ks: KernelSet, clamp: str) -> KernelSet:
+    """``ks`` with its per-kernel scale ratios clamped (``narrow``: at most 1; ``wide``: at
+    least 1; ``one``: all 1), so the set reads each kernel at that scale."""
+    if ks.sigma_ratio is None:
+        raise SystemExit("--sigma-clamp needs a set with a scale per kernel (sigma_ratio)")
+    ratio = np.asarray(ks.sigma_ratio, dtype=np.float64)
+    lo, hi = {"narrow": (None, 1.0), "wide": (1.0, None), "one": (1.0, 1.0)}[clamp]
+    return replace(ks, sigma_ratio=np.clip(ratio, lo, hi))
+
+
 def score(mesh, field: SpectralField, ks: KernelSet, points: tuple) -> dict:
     """Surface PSNR and the edge/flat split of ``ks`` on the benchmark's points."""
     f, b, target = points
@@ -79,6 +93,7 @@ def main() -> int:
     ap.add_argument("--sharpness-scale", type=float, nargs="*", default=[])
     ap.add_argument("--where", nargs="*", default=["all"], choices=["all", "small", "large"])
     ap.add_argument("--search-blend", nargs="*", default=[], help="KS:KC pairs")
+    ap.add_argument("--sigma-clamp", nargs="*", default=[], choices=["narrow", "wide", "one"])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/rescore.jsonl"))
     args = ap.parse_args()
 
@@ -101,6 +116,7 @@ def main() -> int:
                 with_counts(ks, k_s, k_c),
             )
         )
+    variants += [(f"scale ratios clamped: {c}", sigma_clamped(ks, c)) for c in args.sigma_clamp]
     base = None
     command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
     machine = machine_info()
