@@ -53,7 +53,6 @@ def test_the_file_is_a_closed_torus(written):
 def test_the_texture_lands_where_the_uvs_say(torus_script, tmp_path, kind):
     out = torus_script.write(tmp_path, n_major=48, n_minor=24, size=512, kind=kind)
     mesh = load_mesh(out, texture=tmp_path / "torus_texture.png")
-    script = torus_script
     faces, bary, target = surface_samples(mesh, 4000, seed=3)
     p = np.asarray(
         mesh.to_file_units(np.einsum("pk,pkd->pd", bary, mesh.vertices[mesh.faces[faces]]))
@@ -61,7 +60,7 @@ def test_the_texture_lands_where_the_uvs_say(torus_script, tmp_path, kind):
     # the torus's own angles at each point, as texture coordinates
     u = (np.arctan2(p[:, 1], p[:, 0]) / (2 * np.pi)) % 1.0
     v = (np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]) - 1.0) / (2 * np.pi)) % 1.0
-    expected = script.TEXTURES[kind](u, v)
+    expected = torus_script.TEXTURES[kind](u, v)
     close = np.abs(target - expected).max(axis=1) < 0.02
     # points a texel or a flat triangle's chord away from a sharp edge may differ (2 % here);
     # a seam cut instead of wrapped puts a column of faces (~2 %) across the whole atlas
