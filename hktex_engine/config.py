@@ -85,7 +85,11 @@ class KernelConfig:
     biharmonic decay's scale: ``"uniform"`` is §4's one ``sigma_b`` for every kernel;
     ``"per_kernel"`` (our extension) gives kernel ``j`` its own ``sigma_j = sigma_b * s_j``
     with a learnt ratio ``s_j`` in :data:`SIGMA_RATIO_RANGE` (docs/fitting.md, fourteenth
-    and fifteenth passes), stored as the ``.hkt`` member ``sigma_ratio``.
+    and fifteenth passes), stored as the ``.hkt`` member ``sigma_ratio``. ``colour`` picks
+    what a kernel carries: ``"constant"`` is §4's one residual colour ``a_j``; ``"linear"``
+    (our extension) adds a slope ``G_j`` (3 x 3) so the kernel's colour at ``y`` is
+    ``a_j + G_j (x(y) - x(c_j))``, positions in the spectra's normalised frame, stored as the
+    ``.hkt`` member ``color_slopes`` (docs/fitting.md, eighteenth pass).
     """
 
     diffusion_time: float = 8.133e-4
@@ -94,23 +98,33 @@ class KernelConfig:
     k_blend: int = 10
     blend: Literal["paper", "layered"] = "paper"
     sigma: Literal["uniform", "per_kernel"] = "uniform"
+    colour: Literal["constant", "linear"] = "constant"
 
     def __post_init__(self) -> None:
         if self.blend not in BLENDS:
             raise ValueError(f"blend must be one of {BLENDS}, not {self.blend!r}")
         if self.sigma not in SIGMAS:
             raise ValueError(f"sigma must be one of {SIGMAS}, not {self.sigma!r}")
+        if self.colour not in COLOURS:
+            raise ValueError(f"colour must be one of {COLOURS}, not {self.colour!r}")
 
     def to_dict(self) -> dict:
-        """The fields; ``sigma`` only when per kernel, so a §4-5 set's manifest is as before."""
+        """The fields; ``sigma`` only when per kernel and ``colour`` only when linear, so a
+        §4-5 set's manifest is as before."""
         d = asdict(self)
         if self.sigma == "uniform":
             del d["sigma"]
+        if self.colour == "constant":
+            del d["colour"]
         return d
 
     @property
     def per_kernel_sigma(self) -> bool:
         return self.sigma == "per_kernel"
+
+    @property
+    def linear_colour(self) -> bool:
+        return self.colour == "linear"
 
 
 #: The colour rules a kernel set may use (``KernelConfig.blend``).
@@ -120,6 +134,12 @@ SIGMAS = ("uniform", "per_kernel")
 #: A per-kernel ``sigma_j / sigma_b``'s box: the probe's (docs/fitting.md, fourteenth pass),
 #: where the learnt ratios had median 1.3 and p90 2.3.
 SIGMA_RATIO_RANGE = (0.4, 2.5)
+#: What a kernel's colour is (``KernelConfig.colour``).
+COLOURS = ("constant", "linear")
+#: A colour slope's box, per entry, in colour per unit of the normalised frame (a mesh in a
+#: box of side 2): across a footprint 0.1 wide the colour may change by up to 3.2, far past
+#: what a [0, 1] texture needs; the bound only keeps hostile files finite and decodable.
+SLOPE_RANGE = (-32.0, 32.0)
 
 
 @dataclass(frozen=True)
@@ -197,6 +217,12 @@ class FitParams:
     sigma_start: float = 0.0
     #: the layered blend's priorities stay 0 (the paper's blend) before this fraction of steps
     priority_start: float = 0.0
+    #: Adam's rate on the colour slopes (``KernelConfig.colour = "linear"`` only): the colours'
+    #: rate times 20, so a slope moves a footprint ~0.05 across by about what a colour step does
+    lr_slopes: float = 0.12
+    #: linear colours' slopes are trained from this fraction of the steps; at 1 (the default)
+    #: they are only solved after the last step (``fitting/colour_solve.py``)
+    slope_start: float = 1.0
     center_momentum: float = 0.0
     lr_decay_every: int = 1000
     lr_decay: float = 0.5
@@ -373,13 +399,14 @@ def fit_params_from(values: dict) -> FitParams:
     base (default ``DEFAULT_PRESET``), every other known, non-None field overrides it
     (``blend``: the kernel config's colour rule; ``sigma``: its biharmonic scale, where
     ``"per_kernel"`` on a preset that learns none also takes the ``sigma`` preset's start
-    unless ``sigma_start`` is given, so ``dense`` + ``per_kernel`` is the measured pair)."""
+    unless ``sigma_start`` is given, so ``dense`` + ``per_kernel`` is the measured pair;
+    ``colour``: ``"linear"`` solves each kernel's colour slope after the optimiser)."""
     given = {
         k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
     }
     params = fit_preset(values.get("preset") or DEFAULT_PRESET, **given)
     # KernelConfig fields, flat in flags and the API
-    flat = {k: values[k] for k in ("blend", "sigma") if values.get(k) is not None}
+    flat = {k: values[k] for k in ("blend", "sigma", "colour") if values.get(k) is not None}
     if flat:
         learnt_before = params.kernel.per_kernel_sigma
         params = replace(params, kernel=replace(params.kernel, **flat))

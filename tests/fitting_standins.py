@@ -105,6 +105,10 @@ class ToyModel(torch.nn.Module):
         self.priority = torch.nn.Parameter(torch.zeros(n, dtype=dt), requires_grad=False)
         # sigma_B for every kernel: a log-scale row that follows the kernels, no gradient
         self.log_sigma = torch.nn.Parameter(torch.zeros(n, dtype=dt), requires_grad=False)
+        # flat colours: a slope row that follows the kernels, no gradient
+        self.color_slopes = torch.nn.Parameter(
+            torch.zeros((n, 3, 3), dtype=dt), requires_grad=False
+        )
         self.k_blend = k_blend
         self.sigma = sigma
         self.refreshes = 0
@@ -112,7 +116,7 @@ class ToyModel(torch.nn.Module):
     def _rows(self):
         return [
             self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
-            self.priority, self.log_sigma,
+            self.priority, self.log_sigma, self.color_slopes,
         ]  # fmt: skip
 
     def centres(self) -> torch.Tensor:
@@ -169,12 +173,15 @@ class ToyModel(torch.nn.Module):
         colors,
         priority=None,
         log_sigma=None,
+        color_slopes=None,
     ):
         self.face_ids = torch.cat([self.face_ids, torch.as_tensor(face_ids, dtype=torch.long)])
         if priority is None:
             priority = torch.zeros(len(face_ids), dtype=torch.float64)
         if log_sigma is None:
             log_sigma = torch.zeros(len(face_ids), dtype=torch.float64)
+        if color_slopes is None:
+            color_slopes = torch.zeros((len(face_ids), 3, 3), dtype=torch.float64)
         new = [
             bary,
             theta,
@@ -184,6 +191,7 @@ class ToyModel(torch.nn.Module):
             colors,
             priority,
             log_sigma,
+            color_slopes,
         ]
         for p, rows in zip(self._rows(), new, strict=True):
             p.data = torch.cat([p.data, torch.as_tensor(rows, dtype=torch.float64)])

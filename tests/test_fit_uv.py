@@ -250,7 +250,7 @@ def test_api_choices_are_the_engines():
 
     from hktex_server.api.schemas import FitParamsIn
 
-    from hktex_engine.config import BLENDS, PRESETS, SIGMAS
+    from hktex_engine.config import BLENDS, COLOURS, PRESETS, SIGMAS
 
     def choices(name: str) -> set:
         (literal, _none) = get_args(FitParamsIn.model_fields[name].annotation)
@@ -259,6 +259,7 @@ def test_api_choices_are_the_engines():
     assert choices("preset") == set(PRESETS)
     assert choices("blend") == set(BLENDS)
     assert choices("sigma") == set(SIGMAS)
+    assert choices("colour") == set(COLOURS)
 
 
 def test_default_preset_is_later_with_only_the_measured_changes():

@@ -92,6 +92,23 @@ def test_periodic_checkpoint_and_foreign_refused(tmp_path):
         run_fit(m, obj, _params(steps=25), *geo, checkpoint_dir=tmp_path, fingerprint={"a": 2})
 
 
+def test_a_checkpoint_from_before_colour_slopes_resumes(tmp_path):
+    """Checkpoints written before kernels had colour slopes hold no ``model.color_slopes``:
+    they resume with flat colours, as those fits had, and finish as the uninterrupted fit."""
+    m, obj, geo = _setup()
+    full = run_fit(m, obj, _params(steps=25), *geo)
+    m, obj, geo = _setup()
+    run_fit(m, obj, _params(steps=25), *geo, checkpoint_dir=tmp_path)
+    ck = latest_checkpoint(tmp_path)
+    with np.load(ck / "state.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "model.color_slopes"}
+    np.savez(ck / "state.npz", **arrays)
+    fresh, obj, geo = _setup()
+    res = run_fit(fresh, obj, _params(steps=25), *geo, checkpoint_dir=tmp_path)
+    assert res.resumed_from == 20 and res.losses[-5:] == full.losses[-5:]
+    assert not fresh.color_slopes.any()
+
+
 def test_progress_is_throttled():
     m, obj, geo = _setup()
     sink = StopAt()

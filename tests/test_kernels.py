@@ -41,13 +41,16 @@ def make_model(field, kp, config=CONFIG, backend="auto"):
         knn_backend=backend,
         priority=kp.get("priority"),
         sigma_ratio=kp.get("sigma_ratio"),
+        color_slopes=kp.get("color_slopes"),
     )
 
 
 # ------------------------------------------------------------------ independent reference
 def reference_albedo(spectra, kp, config, face_ids, bary):
     """Sections 4-5 in numpy, straight from ALGORITHM.md (brute force over all kernels);
-    ``kp["sigma_ratio"]``, when present, scales each kernel's sigma_B (our extension)."""
+    ``kp["sigma_ratio"]``, when present, scales each kernel's sigma_B, and
+    ``kp["color_slopes"]`` (N, 9) makes each colour ``a_j + G_j (x - x(c_j))`` (our
+    extensions)."""
     gt = spectra.grid_theta
     gs = np.log1p(spectra.grid_eta)
     a_n, s_n = len(gt), len(gs)
@@ -84,11 +87,41 @@ def reference_albedo(spectra, kp, config, face_ids, bary):
             den = expit(sharp * (1 - eps)) - expit(-sharp * eps)
             rho[p, j] = min(max(num / den, 0.0), 1.0)
     out = np.zeros((n_p, 3))
+    slopes = kp.get("color_slopes")
     for p in range(n_p):
         top = np.argsort(-rho[p])[: config.k_blend]
-        blend = (rho[p, top, None] * kp["colors"][top]).sum(0) / max(1.0, rho[p, top].sum())
+        colors = np.array(kp["colors"][top], dtype=np.float64)
+        if slopes is not None:
+            x = at(spectra.vertices, face_ids[p], bary[p])
+            for i, j in enumerate(top):
+                c = at(spectra.vertices, kp["face_ids"][j], kp["bary"][j])
+                colors[i] += np.reshape(slopes[j], (3, 3)) @ (x - c)
+        blend = (rho[p, top, None] * colors).sum(0) / max(1.0, rho[p, top].sum())
         out[p] = np.clip(kp["base_color"] + blend, 0, 1)
     return out, rho
+
+
+def assert_float32_query_paths_match(
+    spectra, field64, kp, config, face_ids, bary, fused, table_path, monkeypatch
+):
+    """A float32 model's no-grad albedo on one query path against the float64 exact-cut
+    evaluation: candidate tables (``table_path="always"``) or the per-point path
+    (``"never"``), with the compiled loops (``fused``) or their torch twins."""
+    from hktex_engine.kernels import compiled
+
+    if fused and not compiled.available(torch.device("cpu"), torch.float32):
+        pytest.skip("numba is not installed")
+    with torch.no_grad():
+        ref = make_model(field64, kp, config).albedo_bruteforce(face_ids, bary, exact_search=True)
+    if not fused:
+        monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", table_path)
+    model = make_model(SpectralField(spectra, device="cpu", dtype=torch.float32), kp, config)
+    if fused and table_path == "never":
+        model.albedo(face_ids, bary).sum().backward()  # makes the float32 grid copy: compiled
+    with torch.no_grad():
+        got = model.albedo(face_ids, bary)
+    np.testing.assert_allclose(got.numpy(), ref, atol=2e-5)
 
 
 def assert_float64_paths_match(model, face_ids, bary, ref):

@@ -14,13 +14,13 @@ import pytest
 import torch
 
 from hktex_engine.errors import KernelSetError
-from hktex_engine.kernels import blending, compiled
-from hktex_engine.kernels import model as kernels_mod
+from hktex_engine.kernels import blending
 from hktex_engine.kernels.hkt import encode_hkt, load_hkt
 from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_points
 from tests.test_kernels import (
     CONFIG,
+    assert_float32_query_paths_match,
     assert_float64_paths_match,
     make_model,
     make_params,
@@ -62,20 +62,11 @@ def test_every_float64_path_matches_the_numpy_reading(spectra, field64, layered_
 
 @pytest.mark.parametrize("fused", [True, False])
 def test_float32_query_paths_match(layered_case, spectra, field64, fused, monkeypatch):
-    """Candidate tables with the compiled blend (and its torch twin) in float32, against the
-    float64 exact-cut evaluation."""
-    if fused and not compiled.available(torch.device("cpu"), torch.float32):
-        pytest.skip("numba is not installed")
-    if not fused:
-        monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
-    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "always")
+    """Candidate tables with the compiled blend (and its torch twin)."""
     kp, face_ids, bary, _, _ = layered_case
-    with torch.no_grad():
-        ref = make_model(field64, kp, LAYERED).albedo_bruteforce(face_ids, bary, exact_search=True)
-    model = make_model(SpectralField(spectra, device="cpu", dtype=torch.float32), kp, LAYERED)
-    with torch.no_grad():
-        got = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(got.numpy(), ref, atol=2e-5)
+    assert_float32_query_paths_match(
+        spectra, field64, kp, LAYERED, face_ids, bary, fused, "always", monkeypatch
+    )
 
 
 def test_equal_priorities_are_the_papers_blend(field64, layered_case):

@@ -26,6 +26,7 @@ from tests.kernels_support import random_points, tiny_spectra
 from tests.test_fused_training import step_grads
 from tests.test_kernels import (
     CONFIG,
+    assert_float32_query_paths_match,
     assert_float64_paths_match,
     make_model,
     make_params,
@@ -60,24 +61,11 @@ def test_every_float64_path_matches_the_numpy_reading(spectra, field64, case):
 @pytest.mark.parametrize("table_path", ["always", "never"])
 def test_float32_query_paths_match(case, spectra, field64, fused, table_path, monkeypatch):
     """Candidate tables (compiled blend or its torch twin) and the per-point path (compiled
-    ranking or torch) in float32, against the float64 exact-cut evaluation."""
-    if fused and not HAVE_COMPILED:
-        pytest.skip("numba is not installed")
+    ranking or torch)."""
     kp, face_ids, bary, _, _ = case
-    with torch.no_grad():
-        ref = make_model(field64, kp, PER_KERNEL).albedo_bruteforce(
-            face_ids, bary, exact_search=True
-        )
-    if not fused:
-        monkeypatch.setattr(compiled, "available", lambda device, dtype: False)
-    monkeypatch.setattr(kernels_mod, "TABLE_PATH", table_path)
-    field32 = SpectralField(spectra, device="cpu", dtype=torch.float32)
-    model = make_model(field32, kp, PER_KERNEL)
-    if fused and table_path == "never":
-        model.albedo(face_ids, bary).sum().backward()  # makes the float32 grid copy: compiled
-    with torch.no_grad():
-        got = model.albedo(face_ids, bary)
-    np.testing.assert_allclose(got.numpy(), ref, atol=2e-5)
+    assert_float32_query_paths_match(
+        spectra, field64, kp, PER_KERNEL, face_ids, bary, fused, table_path, monkeypatch
+    )
 
 
 @pytest.fixture(scope="module")

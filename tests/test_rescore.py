@@ -65,3 +65,19 @@ def test_with_counts_changes_the_counts_alone(rescore):
     assert other.kernel_config.diffusion_time == ks.kernel_config.diffusion_time
     assert (ks.kernel_config.k_search, ks.kernel_config.k_blend) == (50, 30)
     np.testing.assert_array_equal(other.sharpness, ks.sharpness)
+
+
+def test_solved_keeps_the_footprints_and_changes_the_colours(rescore):
+    """``--solve``: the same kernels where they were, new colours; ``linear`` makes the set a
+    linear-colour one with slopes, ``constant`` keeps it §4-5."""
+    from tests.test_colour_solve import _setup
+
+    mesh, _, model = _setup()
+    ks = model.to_kernelset()
+    for kind in ("constant", "linear"):
+        out = rescore.solved(mesh, model.field, ks, kind, per_kernel=40)
+        np.testing.assert_array_equal(out.face_ids, ks.face_ids)
+        np.testing.assert_allclose(out.threshold, ks.threshold)
+        assert np.abs(out.colors - ks.colors).max() > 1e-3
+        assert out.kernel_config.colour == kind
+        assert (out.color_slopes is not None) == (kind == "linear")

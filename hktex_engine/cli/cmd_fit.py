@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from hktex_engine.config import (
+    COLOURS,
     DEFAULT_PRESET,
     PRESET_SPECTRA_K,
     PRESETS,
@@ -72,6 +73,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         " pair measured above the MLP on blub, docs/fitting.md)",
     )
     p.add_argument(
+        "--colour",
+        choices=COLOURS,
+        default=None,
+        help="what a kernel's colour is: constant (§4) or linear (a slope per kernel solved after"
+        " the last step on UV fits, kept only if it wins on validation points; writes .hkt"
+        " version 9/10, which a §4-5 reader cannot score; docs/fitting.md, eighteenth pass)",
+    )
+    p.add_argument(
         "--polish-colors",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -120,6 +129,7 @@ def _params(args: argparse.Namespace) -> FitParams:
             "sampling": args.sampling,
             "blend": args.blend,
             "sigma": args.sigma,
+            "colour": args.colour,
         }
     )
     if params.kernels < 1 or params.steps < 0 or params.points_per_step < 1:

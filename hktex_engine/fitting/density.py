@@ -99,6 +99,7 @@ def resize_model(model: torch.nn.Module, keep: torch.Tensor, new_rows: dict) -> 
         new_rows["colors"],
         new_rows["priority"],
         new_rows["log_sigma"],
+        new_rows["color_slopes"],
     )
 
 

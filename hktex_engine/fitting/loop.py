@@ -314,6 +314,10 @@ def load_checkpoint(
     device = model.base_color.device
     with np.load(path / "state.npz", allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files}
+    n = int(arrays["model.face_ids"].shape[0])
+    # checkpoints written before the colour slopes existed hold none: zero slopes are what
+    # those fits had
+    arrays.setdefault("model.color_slopes", np.zeros((n, 3, 3)))
     rows = {
         name: torch.as_tensor(arrays[f"model.{name}"], device=device) for name in KERNEL_ATTRIBUTES
     }

@@ -283,6 +283,11 @@ def fit_multiview(
     from hktex_engine.geometry.geodesics import SurfaceTracer
 
     options = options or MultiViewOptions()
+    if params.kernel.linear_colour:
+        raise ValueError(
+            "linear colours are solved against a UV texture after the optimiser; a multi-view"
+            " fit has constant colours (colour 'constant')"
+        )
     if mesh is not None and mesh.content_hash != spectra.mesh_hash:
         raise SpectraError("the spectra were computed for another mesh")
     want = views.mesh.get("content_hash") if views.mesh else None

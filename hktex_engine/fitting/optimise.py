@@ -46,6 +46,7 @@ ATTRIBUTE_LRS: dict[str, str] = {
     "base_color": "lr_base",
     "priority": "lr_priority",
     "log_sigma": "lr_sigma",
+    "color_slopes": "lr_slopes",
 }
 #: every per-kernel tensor of the model (the centre is face_ids + bary), checkpoint order
 KERNEL_ATTRIBUTES: tuple[str, ...] = (
@@ -58,6 +59,7 @@ KERNEL_ATTRIBUTES: tuple[str, ...] = (
     "colors",
     "priority",
     "log_sigma",
+    "color_slopes",
 )
 
 
@@ -431,6 +433,8 @@ class KernelOptimiser:
             attrs.pop("priority", None)  # footprints first, layers after (FitParams)
         if step_index < self.params.sigma_start * self.params.steps:
             attrs.pop("log_sigma", None)  # likewise a per-kernel sigma (FitParams)
+        if step_index < self.params.slope_start * self.params.steps:
+            attrs.pop("color_slopes", None)  # and linear colours' slopes
         self.adam.step(attrs, scale)
         self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad

@@ -36,6 +36,14 @@ it, version 8 version 4 with its codes as a last stream, each with ``priority`` 
 the set's blend is layered (``sigma_ratio`` after it). A §4-5 set is never written as 7 or 8,
 and a reader older than them refuses such a set by its version.
 
+A set with linear colours (``KernelConfig.colour = "linear"``) has the member
+``color_slopes`` (N, 9: each kernel's 3 x 3 slope, channel-major; float16 when compact;
+quantised linear per column over the column's own range, like the colours, 8 bits): version
+9 is version 1 with it, version 10 version 4 with its codes as the last stream, each after
+``priority`` and ``sigma_ratio`` when the set's blend and scale use them (the manifest's
+``blend`` and ``sigma`` say so). Neither a §4-5 set nor a set without slopes is ever written as
+9 or 10.
+
 Reading is defensive because a file may come from anyone: members are checked for size before
 they are decompressed (zip bombs), ``.npy`` headers are parsed with pickles refused, and
 shapes, ranges, finiteness and the mesh / spectral-config hashes are checked before use.
@@ -66,7 +74,7 @@ from hktex_engine.kernels.model import (
 )
 
 FORMAT = "hktex-kernels"
-VERSION = 8
+VERSION = 10
 #: The version a plain (unquantised) file is written as; readers of version 1 read it.
 PLAIN_VERSION = 1
 #: Version 2: quantised members, face ids as plain codes. Version 3 (what is written): the
@@ -89,15 +97,26 @@ LAYERED_VERSIONS = (PLAIN_LAYERED_VERSION, QUANTISED_LAYERED_VERSION)
 PLAIN_SIGMA_VERSION = 7
 QUANTISED_SIGMA_VERSION = 8
 SIGMA_VERSIONS = (PLAIN_SIGMA_VERSION, QUANTISED_SIGMA_VERSION)
+#: Linear colours' versions: 1 and 4 with a ``color_slopes`` member (after the other
+#: extensions' members the manifest names; see the module doc).
+PLAIN_LINEAR_VERSION = 9
+QUANTISED_LINEAR_VERSION = 10
+LINEAR_VERSIONS = (PLAIN_LINEAR_VERSION, QUANTISED_LINEAR_VERSION)
 QUANTISED_VERSIONS = (
     QUANTISED_V2,
     QUANTISED_V3,
     QUANTISED_VERSION,
     QUANTISED_LAYERED_VERSION,
     QUANTISED_SIGMA_VERSION,
+    QUANTISED_LINEAR_VERSION,
 )
 #: Versions whose codes sit in one ``codes.bin`` member (version 4's layout).
-STREAM_VERSIONS = (QUANTISED_VERSION, QUANTISED_LAYERED_VERSION, QUANTISED_SIGMA_VERSION)
+STREAM_VERSIONS = (
+    QUANTISED_VERSION,
+    QUANTISED_LAYERED_VERSION,
+    QUANTISED_SIGMA_VERSION,
+    QUANTISED_LINEAR_VERSION,
+)
 #: Members and their columns (0 = a vector). ``base_color`` has 3 entries, not one per kernel.
 MEMBERS: dict[str, int] = {
     "face_ids": 0,
@@ -116,7 +135,10 @@ PACKED = tuple(name for name in MEMBERS if name != "base_color")
 #: A layered set's members: the paper's and one priority per kernel.
 LAYERED_MEMBERS: dict[str, int] = {**MEMBERS, "priority": 0}
 #: Every member a file may hold (the extensions' in their stored order, last).
-ALL_MEMBERS: dict[str, int] = {**LAYERED_MEMBERS, "sigma_ratio": 0}
+ALL_MEMBERS: dict[str, int] = {**LAYERED_MEMBERS, "sigma_ratio": 0, "color_slopes": 9}
+#: Members quantised per column over each column's own range (the manifest's table holds
+#: their ``lo`` / ``hi`` lists).
+COLUMN_CODED = ("colors", "color_slopes")
 COLOR_SPACES = ("srgb", "linear")
 #: Refuse kernel counts beyond this (a fit's budget is ~70k; 10M is far past any real set).
 MAX_KERNELS = 10_000_000
@@ -142,6 +164,9 @@ PRIORITY_BITS = 8
 #: A per-kernel sigma's ratio (``bits={"sigma_ratio": b}`` overrides): 8 bits over the log of
 #: [0.4, 2.5], a step of 0.72 % in sigma (0.36 % at most off), a footprint's radius likewise.
 SIGMA_RATIO_BITS = 8
+#: Colour slopes (``bits={"color_slopes": b}`` overrides; else the colours' width): 8 bits
+#: over each column's range.
+SLOPE_BITS = 8
 #: How each member's codes map to values: (map, lo, hi); colours carry per-channel ranges.
 _QUANT_MAPS: dict[str, tuple[str, float, float]] = {
     "theta": ("linear", THETA_RANGE[0], THETA_RANGE[1]),
@@ -161,6 +186,9 @@ _COMPACT_FLOATS = {
     "base_color": np.float32,
     "priority": np.float16,  # 4e-3 at |beta| = 8 at most: a share changes by < 0.4 %
     "sigma_ratio": np.float16,  # relative 4.9e-4: a footprint's radius by as much
+    # relative 4.9e-4: at most 32 x 0.1 x 4.9e-4 = 1.6e-3 of colour across a footprint 0.1
+    # wide, under half an 8-bit step
+    "color_slopes": np.float16,
 }
 
 
@@ -255,18 +283,23 @@ def encode_hkt(
     return out.getvalue()
 
 
-def _kinds(ks: KernelSet) -> tuple[bool, bool]:
-    """Which extensions a set uses: (the layered blend, a sigma per kernel)."""
-    return ks.kernel_config.blend == "layered", ks.kernel_config.per_kernel_sigma
+def _kinds(ks: KernelSet) -> tuple[bool, bool, bool]:
+    """Which extensions a set uses: (the layered blend, a sigma per kernel, linear colours)."""
+    cfg = ks.kernel_config
+    return cfg.blend == "layered", cfg.per_kernel_sigma, cfg.linear_colour
 
 
-def _members(layered: bool, per_sigma: bool = False) -> dict[str, int]:
-    members = LAYERED_MEMBERS if layered else MEMBERS
-    return {**members, "sigma_ratio": 0} if per_sigma else members
+def _members(layered: bool, per_sigma: bool = False, linear: bool = False) -> dict[str, int]:
+    members = dict(LAYERED_MEMBERS if layered else MEMBERS)
+    if per_sigma:
+        members["sigma_ratio"] = ALL_MEMBERS["sigma_ratio"]
+    if linear:
+        members["color_slopes"] = ALL_MEMBERS["color_slopes"]
+    return members
 
 
-def _packed(layered: bool, per_sigma: bool = False) -> tuple[str, ...]:
-    return tuple(name for name in _members(layered, per_sigma) if name != "base_color")
+def _packed(layered: bool, per_sigma: bool = False, linear: bool = False) -> tuple[str, ...]:
+    return tuple(name for name in _members(layered, per_sigma, linear) if name != "base_color")
 
 
 def written_version(ks: KernelSet, quantised: bool) -> int:
@@ -274,7 +307,9 @@ def written_version(ks: KernelSet, quantised: bool) -> int:
     return _version(quantised, *_kinds(ks))
 
 
-def _version(quantised: bool, layered: bool, per_sigma: bool = False) -> int:
+def _version(quantised: bool, layered: bool, per_sigma: bool = False, linear: bool = False) -> int:
+    if linear:
+        return QUANTISED_LINEAR_VERSION if quantised else PLAIN_LINEAR_VERSION
     if per_sigma:
         return QUANTISED_SIGMA_VERSION if quantised else PLAIN_SIGMA_VERSION
     if layered:
@@ -388,23 +423,32 @@ def _read_manifest(zf: zipfile.ZipFile) -> dict:
         )
     if manifest.get("color_space") not in COLOR_SPACES:
         raise KernelSetError(f"manifest color_space must be one of {COLOR_SPACES}")
+    # versions 7-10 say the blend in the manifest; 9-10 the scale as well
     layered = manifest.get("blend", "paper") == "layered"
-    if layered != (version in LAYERED_VERSIONS) and version not in SIGMA_VERSIONS:
+    named_blend = version in SIGMA_VERSIONS + LINEAR_VERSIONS
+    if layered != (version in LAYERED_VERSIONS) and not named_blend:
         raise KernelSetError(
             f"a version-{version} file cannot hold a {manifest.get('blend', 'paper')!r} blend"
         )
     per_sigma = manifest.get("sigma", "uniform") == "per_kernel"
-    if per_sigma != (version in SIGMA_VERSIONS):
+    if per_sigma != (version in SIGMA_VERSIONS) and version not in LINEAR_VERSIONS:
         raise KernelSetError(
             f"a version-{version} file cannot hold a {manifest.get('sigma', 'uniform')!r} sigma"
+        )
+    linear = manifest.get("colour", "constant") == "linear"
+    if linear != (version in LINEAR_VERSIONS):
+        raise KernelSetError(
+            f"a version-{version} file cannot hold {manifest.get('colour', 'constant')!r} colours"
         )
     return manifest
 
 
-def _manifest_kinds(manifest: dict) -> tuple[bool, bool]:
-    """(layered blend, sigma per kernel) of a checked manifest (:func:`_read_manifest`)."""
+def _manifest_kinds(manifest: dict) -> tuple[bool, bool, bool]:
+    """(layered blend, sigma per kernel, linear colours) of a checked manifest
+    (:func:`_read_manifest`)."""
     layered = manifest.get("blend", "paper") == "layered"
-    return layered, manifest["version"] in SIGMA_VERSIONS
+    per_sigma = manifest.get("sigma", "uniform") == "per_kernel"
+    return layered, per_sigma, manifest["version"] in LINEAR_VERSIONS
 
 
 def _read_member(zf: zipfile.ZipFile, name: str, n: int, cols: int) -> np.ndarray:
@@ -445,6 +489,7 @@ def _kernel_config(manifest: dict) -> KernelConfig:
             k_blend=int(manifest["k_blend"]),
             blend=str(manifest.get("blend", "paper")),  # versions 1-4 predate the field
             sigma=str(manifest.get("sigma", "uniform")),  # versions 1-6 predate it
+            colour=str(manifest.get("colour", "constant")),  # versions 1-8 predate it
         )
     except (KeyError, TypeError, ValueError) as exc:
         raise KernelSetError(f"manifest lacks a valid kernel config: {exc}") from exc
@@ -459,14 +504,23 @@ def _kernel_config(manifest: dict) -> KernelConfig:
 
 
 def _bits(ks: KernelSet, bits: dict[str, int] | None) -> dict[str, int]:
-    """Code widths per member: :data:`QUANT_BITS` overridden by ``bits``, face ids minimal."""
-    out = {**QUANT_BITS, "priority": PRIORITY_BITS, "sigma_ratio": SIGMA_RATIO_BITS}
+    """Code widths per member: :data:`QUANT_BITS` overridden by ``bits``, face ids minimal;
+    colour slopes follow the colours' width unless given (a ladder of widths that widens the
+    colours for a fine fit widens its slopes with them)."""
+    out = {
+        **QUANT_BITS,
+        "priority": PRIORITY_BITS,
+        "sigma_ratio": SIGMA_RATIO_BITS,
+        "color_slopes": SLOPE_BITS,
+    }
     for name, b in (bits or {}).items():
         if name not in out:
             raise KernelSetError(f"no quantisation width for member {name!r}")
         if not isinstance(b, int | np.integer) or not 1 <= int(b) <= 16:
             raise KernelSetError(f"quantisation width of {name!r} must be in [1, 16], not {b!r}")
         out[name] = int(b)
+    if "color_slopes" not in (bits or {}):
+        out["color_slopes"] = out["colors"]
     out["face_ids"] = max(1, int(_face_deltas(ks.face_ids).max()).bit_length())
     return out
 
@@ -573,20 +627,27 @@ def _quantised_arrays(ks: KernelSet, bits: dict[str, int]) -> tuple[dict, dict]:
         arrays[name] = pack_codes(
             _encode_scalar(getattr(ks, name), kind, lo, hi, bits[name]), bits[name]
         )
-    colors = np.asarray(ks.colors, dtype=np.float64)
-    lo_c, hi_c = colors.min(axis=0), colors.max(axis=0)
-    codes = np.stack(
-        [_encode_scalar(colors[:, c], "linear", lo_c[c], hi_c[c], bits["colors"]) for c in range(3)]
-    )  # (3, N): channel-planar
-    table["colors"] = {
-        "bits": bits["colors"],
-        "map": "linear",
-        "lo": lo_c.tolist(),
-        "hi": hi_c.tolist(),
-    }
-    arrays["colors"] = pack_codes(codes, bits["colors"])
+    for name in COLUMN_CODED:
+        if name in _members(*_kinds(ks)):
+            arrays[name], table[name] = _encode_columns(getattr(ks, name), bits[name])
     arrays["base_color"] = np.asarray(ks.base_color, dtype=np.float32)
     return arrays, table
+
+
+def _encode_columns(values: np.ndarray, bits: int) -> tuple[np.ndarray, dict]:
+    """A per-column member (colours, colour slopes): codes linear over each column's own
+    range, column-planar, and its quantisation-table entry."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    codes = np.stack(
+        [_encode_scalar(v[:, c], "linear", lo[c], hi[c], bits) for c in range(v.shape[1])]
+    )  # (columns, N)
+    return pack_codes(codes, bits), {
+        "bits": bits,
+        "map": "linear",
+        "lo": lo.tolist(),
+        "hi": hi.tolist(),
+    }
 
 
 def _read_quantised(zf: zipfile.ZipFile, manifest: dict, n: int) -> dict[str, np.ndarray]:
@@ -669,11 +730,12 @@ def _decode_member(
         if (q.sum(axis=1) > (1 << bits) - 1).any():
             raise KernelSetError("barycentrics must be non-negative rows summing to one")
         return _decode_bary(q, bits)
-    if name == "colors":
-        lo, hi = _bounds(spec, name, 3)
-        q = codes.reshape(3, n)
+    if name in COLUMN_CODED:
+        cols = ALL_MEMBERS[name]
+        lo, hi = _bounds(spec, name, cols)
+        q = codes.reshape(cols, n)
         return np.stack(
-            [_decode_scalar(q[c], "linear", lo[c], hi[c], bits) for c in range(3)], axis=1
+            [_decode_scalar(q[c], "linear", lo[c], hi[c], bits) for c in range(cols)], axis=1
         )
     kind, lo_ref, hi_ref = _QUANT_MAPS[name]
     lo, hi = _bounds(spec, name, 1)

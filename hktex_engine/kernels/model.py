@@ -25,14 +25,14 @@ it. That trades G/4 times more multiply-adds than strictly needed for dense BLAS
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
 import torch
 from torch import nn
 
-from hktex_engine.config import SIGMA_RATIO_RANGE, KernelConfig
+from hktex_engine.config import SIGMA_RATIO_RANGE, SLOPE_RANGE, KernelConfig
 from hktex_engine.errors import KernelSetError
 from hktex_engine.kernels import blending, fused_blend, fused_pairs, fused_rank, fused_terms
 from hktex_engine.kernels.knn import CandidateSearch
@@ -111,6 +111,9 @@ class KernelSet:
     #: (N,) ``sigma_j / sigma_B`` in SIGMA_RATIO_RANGE when kernel_config.sigma is
     #: "per_kernel"; None for §4's one sigma_B
     sigma_ratio: np.ndarray | None = None
+    #: (N, 9) colour slopes ``G_j`` (row-major: channel, then normalised-frame axis) in
+    #: SLOPE_RANGE when kernel_config.colour is "linear"; None for §4's constant colours
+    color_slopes: np.ndarray | None = None
     mesh_hash: str = ""
     config_hash: str = ""
     color_space: str = "srgb"
@@ -169,17 +172,21 @@ class KernelSet:
 
     def _validate_extensions(self, n: int) -> None:
         """The extensions' rows: present exactly when the config uses them (a layered set's
-        ``priority``, a per-kernel-sigma set's ``sigma_ratio``), one finite value per kernel
-        in range (float16 storage rounds the ends by less than the slack)."""
+        ``priority``, a per-kernel-sigma set's ``sigma_ratio``, a linear-colour set's
+        ``color_slopes``), finite values per kernel in range (float16 storage rounds the ends
+        by less than the slack)."""
         lo_p, hi_p = PRIORITY_RANGE
         lo_s, hi_s = SIGMA_RATIO_RANGE
+        cfg = self.kernel_config
         rows = (
-            ("priority", self.kernel_config.blend == "layered", "the layered blend",
+            ("priority", cfg.blend == "layered", "the layered blend", (n,),
              (lo_p - 1e-2, hi_p + 1e-2)),
-            ("sigma_ratio", self.kernel_config.per_kernel_sigma, "a per-kernel-sigma set",
+            ("sigma_ratio", cfg.per_kernel_sigma, "a per-kernel-sigma set", (n,),
              (lo_s * (1 - 1e-3), hi_s * (1 + 1e-3))),
+            ("color_slopes", cfg.linear_colour, "a linear-colour set", (n, 9),
+             (SLOPE_RANGE[0] * (1 + 1e-3), SLOPE_RANGE[1] * (1 + 1e-3))),
         )  # fmt: skip
-        for name, used, owner, (lo, hi) in rows:
+        for name, used, owner, shape, (lo, hi) in rows:
             values = getattr(self, name)
             if values is None:
                 if used:
@@ -188,8 +195,8 @@ class KernelSet:
             if not used:
                 raise KernelSetError(f"member {name!r} belongs to {owner} only")
             arr = np.asarray(values)
-            if arr.shape != (n,) or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
-                raise KernelSetError(f"member {name!r} must be {n} finite floats")
+            if arr.shape != shape or arr.dtype.kind != "f" or not np.all(np.isfinite(arr)):
+                raise KernelSetError(f"member {name!r} must be {shape} finite floats")
             _check_range(name, arr, lo, hi)
 
 
@@ -258,6 +265,7 @@ class HeatKernelModel(nn.Module):
         knn_backend: str = "auto",
         priority: torch.Tensor | np.ndarray | None = None,
         sigma_ratio: torch.Tensor | np.ndarray | None = None,
+        color_slopes: torch.Tensor | np.ndarray | None = None,
     ) -> None:
         super().__init__()
         self.field = field
@@ -285,6 +293,12 @@ class HeatKernelModel(nn.Module):
             else torch.log(_float(sigma_ratio, dev, dt))
         )
         self.log_sigma = nn.Parameter(log_sigma, requires_grad=self.per_kernel_sigma)
+        # colour slopes (N, 3, 3): read and learnt only when the config says linear (solved
+        # after the optimiser by fitting.colour_solve, and trained from FitParams.slope_start)
+        slopes = torch.zeros((n, 3, 3), device=dev, dtype=dt)
+        if color_slopes is not None:
+            slopes = _float(color_slopes, dev, dt).reshape(n, 3, 3)
+        self.color_slopes = nn.Parameter(slopes, requires_grad=self.linear_colour)
         self._check_shapes()
         self._generation = 0
         self._cache_key: tuple | None = None
@@ -334,6 +348,9 @@ class HeatKernelModel(nn.Module):
             sigma_ratio=None
             if kernelset.sigma_ratio is None
             else np.asarray(kernelset.sigma_ratio, dtype=np.float64),
+            color_slopes=None
+            if kernelset.color_slopes is None
+            else np.asarray(kernelset.color_slopes, dtype=np.float64),
         )
 
     def to_kernelset(
@@ -358,6 +375,9 @@ class HeatKernelModel(nn.Module):
             sigma_ratio=np_(torch.exp(self.log_sigma)).astype(np.float64)
             if self.per_kernel_sigma
             else None,
+            color_slopes=np_(self.color_slopes).reshape(-1, 9).astype(np.float64)
+            if self.linear_colour
+            else None,
             mesh_hash=self.field.spectra.mesh_hash,
             config_hash=self.field.spectra.config_hash,
             color_space=color_space,
@@ -377,6 +397,7 @@ class HeatKernelModel(nn.Module):
             "base_color": (3,),
             "priority": (n,),
             "log_sigma": (n,),
+            "color_slopes": (n, 3, 3),
         }
         for name, shape in expect.items():
             got = tuple(getattr(self, name).shape)
@@ -402,6 +423,32 @@ class HeatKernelModel(nn.Module):
     def per_kernel_sigma(self) -> bool:
         """Whether each kernel has its own biharmonic scale (``log_sigma``) or §4's one."""
         return self.config.per_kernel_sigma
+
+    @property
+    def linear_colour(self) -> bool:
+        """Whether each kernel's colour varies linearly over its footprint (``color_slopes``)."""
+        return self.config.linear_colour
+
+    @torch.no_grad()
+    def set_color_slopes(self, slopes: torch.Tensor | np.ndarray | None) -> None:
+        """Give the kernels colour slopes (N, 3, 3) and make the set linear-colour, or, with
+        None, drop them and return to §4's constant colours."""
+        colour = "constant" if slopes is None else "linear"
+        self.config = replace(self.config, colour=colour)
+        dev, dt = self.field.device, self.field.dtype
+        n = len(self)
+        self.color_slopes.data = (
+            torch.zeros((n, 3, 3), device=dev, dtype=dt)
+            if slopes is None
+            else _float(slopes, dev, dt).reshape(n, 3, 3)
+        )
+        self.color_slopes.requires_grad_(self.linear_colour)
+        self.color_slopes.grad = None
+        self._check_shapes()
+
+    def centre_positions(self) -> torch.Tensor:
+        """The kernels' centres in the normalised frame (N, 3), without a graph."""
+        return self.field.positions(self.face_ids, self.bary.detach())
 
     def sigma_ratio(self, idx: torch.Tensor | None = None) -> torch.Tensor | None:
         """``s_j = sigma_j / sigma_B`` of kernels ``idx`` (all when None), with a graph when
@@ -431,6 +478,7 @@ class HeatKernelModel(nn.Module):
         self.base_color.clamp_(*BASE_RANGE)
         self.priority.clamp_(*PRIORITY_RANGE)
         self.log_sigma.clamp_(*LOG_SIGMA_RANGE)
+        self.color_slopes.clamp_(*SLOPE_RANGE)
         self.bary.clamp_(min=0.0)
         self.bary.div_(self.bary.sum(dim=1, keepdim=True))
 
@@ -474,15 +522,18 @@ class HeatKernelModel(nn.Module):
         colors: torch.Tensor | np.ndarray,
         priority: torch.Tensor | np.ndarray | None = None,
         log_sigma: torch.Tensor | np.ndarray | None = None,
+        color_slopes: torch.Tensor | np.ndarray | None = None,
     ) -> HeatKernelModel:
-        """Add kernels at the end (``eta`` in natural units; ``priority`` and ``log_sigma`` 0
-        unless given)."""
+        """Add kernels at the end (``eta`` in natural units; ``priority``, ``log_sigma`` and
+        the colour slopes 0 unless given)."""
         dev, dt = self.field.device, self.field.dtype
         self._roster += 1
         if priority is None:
             priority = torch.zeros(len(face_ids), device=dev, dtype=dt)
         if log_sigma is None:
             log_sigma = torch.zeros(len(face_ids), device=dev, dtype=dt)
+        if color_slopes is None:
+            color_slopes = torch.zeros((len(face_ids), 3, 3), device=dev, dtype=dt)
         self.face_ids = torch.cat([self.face_ids, _long(face_ids, dev)])
         new = [
             bary,
@@ -493,6 +544,7 @@ class HeatKernelModel(nn.Module):
             colors,
             priority,
             log_sigma,
+            _float(color_slopes, dev, dt).reshape(-1, 3, 3),
         ]
         for p, rows in zip(self._row_params(), new, strict=True):
             p.data = torch.cat([p.data, _float(rows, dev, dt)])
@@ -504,7 +556,7 @@ class HeatKernelModel(nn.Module):
     def _row_params(self) -> list[nn.Parameter]:
         return [
             self.bary, self.theta, self.s, self.threshold, self.sharpness, self.colors,
-            self.priority, self.log_sigma,
+            self.priority, self.log_sigma, self.color_slopes,
         ]  # fmt: skip
 
     # ----------------------------------------------------------------- caches
@@ -643,10 +695,15 @@ class HeatKernelModel(nn.Module):
             _, norm, _, _, _ = self._terms
             args = (norm, self.threshold, self.sharpness, self.colors, self.base_color)
             cfg = self.config
+            # the compiled blend knows constant colours only: a linear-colour set takes its
+            # chosen kernels from it and mixes them here
+            ordered = return_aux or self.linear_colour
             out, kid, rho = fused_blend.blend(
-                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=return_aux,
+                ft, face_ids, bary, *args, cfg.sigma_b, k_s, cfg.k_blend, ordered=ordered,
                 priority=self.priority if self.layered else None, ratio=self.sigma_ratio(),
             )  # fmt: skip
+            if self.linear_colour:
+                out = self._mix(rho.to(self.colors.dtype), kid, face_ids, bary)
             return (out, {"indices": kid, "rho": rho}) if return_aux else out
         row, kid, d2 = point_distances(ft, face_ids, bary)
         # exact K_s cut first (distance, then kernel id; padding gets distinct ids above every
@@ -662,7 +719,7 @@ class HeatKernelModel(nn.Module):
         rho = soft_step(r, self.threshold[kid], self.sharpness[kid])
         top = select_by_rule(rho, d2, kid, min(self.config.k_blend, k_s))
         rho_top, kid = rho.gather(1, top), kid.gather(1, top)
-        out = self._mix(rho_top, kid)
+        out = self._mix(rho_top, kid, face_ids, bary)
         if return_aux:
             return out, {"indices": kid, "rho": rho_top}
         return out
@@ -793,14 +850,30 @@ class HeatKernelModel(nn.Module):
                 pos = select_by_rule(rho.detach(), d2.detach(), cand, k_c)
                 rho_top = rho.gather(1, pos)
                 kid = cand.gather(1, pos)
-        out = self._mix(rho_top, kid)
+        out = self._mix(rho_top, kid, face_ids, bary)
         if return_aux:
             return out, {"indices": kid, "rho": rho_top}
         return out
 
-    def _mix(self, rho_top: torch.Tensor, kid: torch.Tensor) -> torch.Tensor:
-        """The colours of points whose chosen kernels are ``kid`` with responses ``rho_top``."""
-        return blending.albedo(rho_top, self.colors[kid], self.base_color, self.priority_of(kid))
+    def _mix(
+        self, rho_top: torch.Tensor, kid: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor
+    ) -> torch.Tensor:
+        """The colours of points ``(face_ids, bary)`` whose chosen kernels are ``kid`` with
+        responses ``rho_top``."""
+        colors = self.colors[kid]
+        if self.linear_colour:
+            colors = colors + self._slope_terms(kid, face_ids, bary)
+        return blending.albedo(rho_top, colors, self.base_color, self.priority_of(kid))
+
+    def _slope_terms(
+        self, kid: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor
+    ) -> torch.Tensor:
+        """``G_j (x(y) - x(c_j))`` (P, K_c, 3) of the chosen kernels at the points; padding
+        ids (``rho`` 0) read the last kernel's, which the blend weighs by 0."""
+        k = kid.clamp(max=len(self) - 1)
+        x = self.field.positions(face_ids, bary.detach()).to(self.colors.dtype)
+        offset = x[:, None, :] - self.centre_positions().to(self.colors.dtype)[k]
+        return torch.einsum("pkcd,pkd->pkc", self.color_slopes[k], offset)
 
     def _grad_needed(self) -> bool:
         return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
@@ -903,7 +976,7 @@ class HeatKernelModel(nn.Module):
             top, dots, blend, emb_y, scale, coef, norm, weights, emb_c, *attrs[:2]
         )
         kid = uniq[top]
-        return self._mix(rho, kid), kid, rho.detach()
+        return self._mix(rho, kid, face_ids, bary), kid, rho.detach()
 
     def _pair_graph(self, face_ids, bary, uniq, terms, top, dots, blend):
         """``(kid, rho)`` of the chosen pairs ``top`` (rows of ``terms``), with a graph."""

@@ -75,6 +75,12 @@ class FitParamsIn(_Strict):
         " 0.4 of the steps unless sigma_start is given; .hkt versions 7/8, which a §4-5 reader"
         " cannot score; with preset 'dense' the pair above the MLP on blub, docs/fitting.md)",
     )
+    colour: Literal["constant", "linear"] | None = Field(
+        None,
+        description="kernel colour: ALGORITHM.md §4's constant residual, or 'linear' (a slope per"
+        " kernel solved after the last step of a UV fit, kept only if it wins on validation"
+        " points; .hkt versions 9/10, which a §4-5 reader cannot score; docs/fitting.md)",
+    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)
@@ -101,6 +107,16 @@ class FitParamsIn(_Strict):
     )
     priority_start: float | None = Field(
         None, ge=0, le=1, description="layered blend: fraction of the steps before priorities train"
+    )
+    lr_slopes: float | None = Field(
+        None, gt=0, le=100, description="linear colours: Adam's rate on the colour slopes"
+    )
+    slope_start: float | None = Field(
+        None,
+        ge=0,
+        le=1,
+        description="linear colours: fraction of the steps before the slopes train (1: solved"
+        " after the last step only)",
     )
     eval_points: int | None = Field(
         None, ge=100, le=1_000_000, description="surface points for the final metrics (fit_uv)"
