@@ -230,7 +230,6 @@ def run_one(
         "saturation": saturation(model, sat_f, sat_b),
         "split": edge_flat_split(mesh, pred, target, eval_f, eval_b),
         "colour_solve": m.get("colour_solve"),
-        "linear_colour_solve": m.get("linear_colour_solve"),
         "mlp_equal_samples": mlp_psnr(
             mesh, params.steps, params.points_per_step, eval_f, eval_b, target
         ),

@@ -88,8 +88,9 @@ class KernelConfig:
     and fifteenth passes), stored as the ``.hkt`` member ``sigma_ratio``. ``colour`` picks
     what a kernel carries: ``"constant"`` is §4's one residual colour ``a_j``; ``"linear"``
     (our extension) adds a slope ``G_j`` (3 x 3) so the kernel's colour at ``y`` is
-    ``a_j + G_j (x(y) - x(c_j))``, positions in the spectra's normalised frame, stored as the
-    ``.hkt`` member ``color_slopes`` (docs/fitting.md, eighteenth pass).
+    ``a_j + G_j (x(y) - x(c_j))``, positions in the spectra's normalised frame, learnt from
+    ``FitParams.slope_start`` and stored as the ``.hkt`` member ``color_slopes``
+    (docs/fitting.md, eighteenth pass).
     """
 
     diffusion_time: float = 8.133e-4
@@ -220,9 +221,10 @@ class FitParams:
     #: Adam's rate on the colour slopes (``KernelConfig.colour = "linear"`` only): the colours'
     #: rate times 20, so a slope moves a footprint ~0.05 across by about what a colour step does
     lr_slopes: float = 0.12
-    #: linear colours' slopes are trained from this fraction of the steps; at 1 (the default)
-    #: they are only solved after the last step (``fitting/colour_solve.py``)
-    slope_start: float = 1.0
+    #: linear colours' slopes stay 0 (§4's flat colours) before this fraction of the steps;
+    #: 0.4, the per-kernel sigma's measured start, measured for them too (docs/fitting.md,
+    #: eighteenth pass)
+    slope_start: float = 0.4
     center_momentum: float = 0.0
     lr_decay_every: int = 1000
     lr_decay: float = 0.5
@@ -400,7 +402,7 @@ def fit_params_from(values: dict) -> FitParams:
     (``blend``: the kernel config's colour rule; ``sigma``: its biharmonic scale, where
     ``"per_kernel"`` on a preset that learns none also takes the ``sigma`` preset's start
     unless ``sigma_start`` is given, so ``dense`` + ``per_kernel`` is the measured pair;
-    ``colour``: ``"linear"`` solves each kernel's colour slope after the optimiser)."""
+    ``colour``: ``"linear"`` trains a colour slope per kernel from ``slope_start``)."""
     given = {
         k: v for k, v in values.items() if v is not None and k in FitParams.__dataclass_fields__
     }

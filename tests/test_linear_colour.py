@@ -1,7 +1,8 @@
 """Linear colours per kernel (``KernelConfig.colour = "linear"``, .hkt versions 9/10): every
 evaluation path against the numpy reading of ALGORITHM.md §4-5 with ``a_j + G_j (x - x(c_j))``
-as the colour, slopes of zero against §4-5 bit for bit, the joint least-squares solve against
-a dense one, storage, and the fit's guarded solve."""
+as the colour, slopes of zero against §4-5, the slopes' gradient against finite differences,
+the joint least-squares solve (``benchmarks/rescore.py --solve``) against a dense one,
+storage, and a fit that trains them."""
 
 from __future__ import annotations
 
@@ -268,63 +269,30 @@ def test_linear_solve_matches_a_dense_damped_solve_and_beats_the_constant_one():
     assert out["rmse_after"] < constant["rmse_after"] < constant["rmse_before"]
 
 
-def test_fit_uv_keeps_linear_colours_only_when_they_win(monkeypatch):
-    """``colour="linear"``: the fit trains constant colours, then solves slopes; kept, the set
-    is a linear-colour one (version 9), refused (a stand-in solve that ruins the colours), it
-    is a §4-5 set with the constant solve's result."""
-    from hktex_engine.fitting import uv as uv_mod
-    from hktex_engine.spectra.grid import compute_spectra
-
-    mesh = _demo_mesh()
-    spectra = compute_spectra(mesh, TINY)
-    base = dict(kernels=120, steps=30, points_per_step=256, seed=5, densify=False)
-    params = fit_params_from({"preset": "default", **base, "colour": "linear"})
-    assert params.kernel.colour == "linear"
-    fit = uv_mod.fit_uv(mesh, spectra, params, eval_points=3000)
-    solve = fit.metrics["linear_colour_solve"]
-    assert solve["kept"] == (solve["validation_psnr_after"] > solve["validation_psnr_before"])
-    if solve["kept"]:
-        assert fit.kernelset.kernel_config.colour == "linear"
-        assert fit.kernelset.color_slopes.shape == (len(fit.kernelset), 9)
-        assert np.abs(fit.kernelset.color_slopes).max() > 0
-        assert "colour_solve" not in fit.metrics  # the joint solve replaces the constant one
-    real = uv_mod.solve_colours
-
-    def ruin(model, mesh_, n_points, rng, linear=False, **kw):
-        if not linear:
-            return real(model, mesh_, n_points, rng, **kw)
-        model.set_color_slopes(np.full((len(model), 3, 3), 5.0))
-        return {"points": n_points, "rmse_before": 0.0, "rmse_after": 1.0}
-
-    monkeypatch.setattr(uv_mod, "solve_colours", ruin)
-    refused = uv_mod.fit_uv(mesh, spectra, params, eval_points=3000)
-    assert refused.metrics["linear_colour_solve"]["kept"] is False
-    assert refused.kernelset.kernel_config.colour == "constant"
-    assert refused.kernelset.color_slopes is None
-    assert "colour_solve" in refused.metrics  # the default's own solve ran instead
-
-
 def test_slopes_trained_from_their_start_follow_density_control():
-    """``slope_start`` < 1: the fit is a linear-colour one from the first step (flat slopes),
-    the slopes learn from their start, clones and split children carry them, and the set
-    stays linear whatever the final solve decides."""
+    """The fit is a linear-colour one from the first step (flat slopes), the slopes learn
+    from their start, clones and split children carry them, and no colour solve ignores them
+    after; a start at the end (nothing to train) is refused."""
     from hktex_engine.fitting.uv import fit_uv
     from hktex_engine.spectra.grid import compute_spectra
 
     mesh = _demo_mesh()
     spectra = compute_spectra(mesh, TINY)
     base = dict(kernels=80, steps=40, points_per_step=256, seed=5, slope_start=0.25)
+    assert fit_params_from({"colour": "linear"}).slope_start == 0.4  # the measured start
     params = fit_params_from({"preset": "default", **base, "colour": "linear"})
     fit = fit_uv(mesh, spectra, params, eval_points=3000)
     ks = fit.kernelset
     assert ks.kernel_config.colour == "linear" and len(ks) != 80  # density control ran
     assert (np.abs(ks.color_slopes).max(axis=1) > 0).mean() > 0.5
-    assert fit.metrics["linear_colour_solve"]["colour"] == "linear"
+    assert "colour_solve" not in fit.metrics  # the default preset's solve reads no slopes
+    with pytest.raises(ValueError, match="slope_start"):
+        fit_uv(mesh, spectra, replace(params, slope_start=1.0), eval_points=3000)
 
 
 def test_a_multiview_fit_refuses_linear_colours():
     from hktex_engine.fitting.multiview import fit_multiview
 
     params = FitParams(kernel=LINEAR)
-    with pytest.raises(ValueError, match="linear colours are solved against a UV texture"):
+    with pytest.raises(ValueError, match="linear colours are fitted against a UV texture"):
         fit_multiview(None, None, None, params)

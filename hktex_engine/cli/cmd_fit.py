@@ -76,9 +76,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--colour",
         choices=COLOURS,
         default=None,
-        help="what a kernel's colour is: constant (§4) or linear (a slope per kernel solved after"
-        " the last step on UV fits, kept only if it wins on validation points; writes .hkt"
-        " version 9/10, which a §4-5 reader cannot score; docs/fitting.md, eighteenth pass)",
+        help="what a kernel's colour is: constant (§4) or linear (a colour slope per kernel,"
+        " trained from 40 %% of the steps of a UV fit; writes .hkt version 9/10, which a §4-5"
+        " reader cannot score; docs/fitting.md, eighteenth pass)",
     )
     p.add_argument(
         "--polish-colors",

@@ -17,10 +17,12 @@ points see stay near their fitted values instead of being driven by one sample).
 
 Linear colours (``KernelConfig.colour = "linear"``): kernel ``j``'s colour at ``y`` is
 ``a_j + G_j (x(y) - x(c_j))``, still linear in the unknowns, so the same solve finds the
-colours and the slopes together: three more columns a kernel, its blend weight times the
-point's offset from the centre along each axis of the normalised frame. Measured on fixed
-footprints before it was built (docs/fitting.md, eighteenth pass): +1.8 dB on fresh points of
-the smooth held-out asset, +0.2 to +0.4 on blub, where the edges bound the fit.
+colours and the slopes together (``linear=True``): three more columns a kernel, its blend
+weight times the point's offset from the centre along each axis of the normalised frame. It
+is a measurement, not a fit step (``benchmarks/rescore.py --solve linear``; docs/fitting.md,
+eighteenth pass): on a §4-5 default set of the smooth held-out asset it gained +0.6 dB on
+400,000 fresh points (flats +3.2, the eye's edge -0.9), on blub's -0.2, and after slopes were
+trained it lost on validation points on both; training the slopes is what the fit does.
 """
 
 from __future__ import annotations

@@ -285,7 +285,7 @@ def fit_multiview(
     options = options or MultiViewOptions()
     if params.kernel.linear_colour:
         raise ValueError(
-            "linear colours are solved against a UV texture after the optimiser; a multi-view"
+            "linear colours are fitted against a UV texture (measured there only); a multi-view"
             " fit has constant colours (colour 'constant')"
         )
     if mesh is not None and mesh.content_hash != spectra.mesh_hash:

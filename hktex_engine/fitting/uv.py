@@ -52,9 +52,6 @@ EVAL_CHUNK = 4096
 #: points per kernel for the final colour solve (``FitParams.polish_colors``): ~2-3 x K_c
 #: samples per unknown colour keep the solve well determined without dominating the fit time
 POLISH_POINTS_PER_KERNEL = 30
-#: likewise for the linear-colour solve, four unknowns a kernel and channel: ~80 points a
-#: kernel (the probe of docs/fitting.md's eighteenth pass solved on 40-110)
-LINEAR_POINTS_PER_KERNEL = 80
 #: seed-stream label of the error sampler's point pool (independent of the loop's rng)
 POOL_STREAM = 0x5A3
 
@@ -150,12 +147,6 @@ class UVObjective:
             self.sampler.load_state_arrays(arrays)
 
 
-def trains_slopes(params: FitParams) -> bool:
-    """Whether a fit trains linear colours' slopes (from ``slope_start``, before the end) or
-    fits §4-5's flat colours and, if asked for linear ones, solves their slopes after."""
-    return params.kernel.linear_colour and params.slope_start < 1.0
-
-
 def initial_kernelset(
     mesh: Mesh,
     spectra: Spectra,
@@ -170,7 +161,6 @@ def initial_kernelset(
     where the detail is). Colours: the texture at the centres, their mean as ``a_0`` and the
     residuals as ``a_j``. Shape attributes drawn from the reference distributions.
     """
-    constant = dataclasses.replace(params.kernel, colour="constant")
     n = int(params.kernels)
     n_cand = int(min(max(4 * n, 8 * 1024), 200_000))
     cand_f, cand_b = sample_surface(mesh.vertices, mesh.faces, n_cand, rng)
@@ -208,17 +198,16 @@ def initial_kernelset(
         sharpness=sharpness,
         colors=np.clip(colors - base, -1.0, 1.0),
         base_color=np.clip(base, 0.0, 1.0),
-        # linear colours are solved after the optimiser (guarded_colour_solve), and trained
-        # from ``slope_start`` when that comes before the end; else the fit is §4-5's
-        kernel_config=params.kernel if trains_slopes(params) else constant,
+        kernel_config=params.kernel,
         mesh_hash=spectra.mesh_hash,
         config_hash=spectra.config_hash,
         # every kernel starts on one layer: the layered blend begins as the paper's
         priority=np.zeros(n) if params.kernel.blend == "layered" else None,
         # every kernel starts at sigma_B: a per-kernel sigma begins as §4's one
         sigma_ratio=np.ones(n) if params.kernel.per_kernel_sigma else None,
-        # and with flat colours: linear ones begin as §4's
-        color_slopes=np.zeros((n, 9)) if trains_slopes(params) else None,
+        # and with flat colours: linear ones begin as §4's (their slopes train from
+        # ``slope_start``)
+        color_slopes=np.zeros((n, 9)) if params.kernel.linear_colour else None,
     )
 
 
@@ -251,13 +240,9 @@ def kernelset_bytes(kernelset: KernelSet) -> dict[str, int]:
     return out
 
 
-def guarded_colour_solve(
-    model: HeatKernelModel, mesh: Mesh, rng, eval_points: int, linear: bool = False
-) -> dict:
+def guarded_colour_solve(model: HeatKernelModel, mesh: Mesh, rng, eval_points: int) -> dict:
     """The colour solve, kept only if it scores better on validation points of their own
     seed (not the evaluation points) than the optimiser's colours; else those are restored.
-    ``linear``: the solve of colours and colour slopes together, which makes the set a
-    linear-colour one when kept and leaves it §4-5's when not.
 
     Why: on a long fit the solve can lose (spot, 5,000 steps: 35.58 dB before it, 35.21
     after, on the evaluation points; the optimiser's colours have seen millions of samples,
@@ -266,20 +251,15 @@ def guarded_colour_solve(
     n = min(VALIDATION_POINTS, eval_points)
     val_f, val_b, val_target = surface_samples(mesh, n, EVAL_SEED + 2)
     kept_colors = (model.base_color.detach().clone(), model.colors.detach().clone())
-    kept_slopes = model.color_slopes.detach().clone() if model.linear_colour else None
     before = psnr(evaluate_albedo(model, val_f, val_b), val_target)
-    per_kernel = LINEAR_POINTS_PER_KERNEL if linear else POLISH_POINTS_PER_KERNEL
-    polish = solve_colours(model, mesh, per_kernel * len(model), rng, linear=linear)
+    polish = solve_colours(model, mesh, POLISH_POINTS_PER_KERNEL * len(model), rng)
     after = psnr(evaluate_albedo(model, val_f, val_b), val_target)
     polish.update(validation_points=n, validation_psnr_before=before, validation_psnr_after=after)
     polish["kept"] = bool(after > before)
-    polish["colour"] = "linear" if linear else "constant"
     if not polish["kept"]:
         with torch.no_grad():
             model.base_color.copy_(kept_colors[0])
             model.colors.copy_(kept_colors[1])
-        if linear:  # back to the slopes it had (trained ones), or to §4-5's flat colours
-            model.set_color_slopes(kept_slopes)
     return polish
 
 
@@ -341,6 +321,8 @@ def fit_uv(
         raise SpectraError("the spectra were computed for another mesh")
     if params.kernels < 1 or params.steps < 0:
         raise ValueError("kernels must be >= 1 and steps >= 0")
+    if params.kernel.linear_colour and not 0 <= params.slope_start < 1:
+        raise ValueError("linear colours need slope_start in [0, 1): their slopes are trained")
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     dev = resolve_device(device)
@@ -382,18 +364,16 @@ def fit_uv(
         transport_theta=transport_theta,
     )
     timings["fit_s"] = loop.seconds
-    polish = linear = None
-    if (params.polish_colors or params.kernel.linear_colour) and loop.steps > 0:
+    polish = None
+    # a linear-colour set trained its colours with its slopes; the constant solve would read
+    # its footprints without them (and the joint solve lost on validation points in every fit
+    # it was measured on: docs/fitting.md, eighteenth pass)
+    if params.polish_colors and not params.kernel.linear_colour and loop.steps > 0:
         t_polish = time.perf_counter()
         # the PSNR the optimiser reached, so the solve's gain (colour, not footprint) is known
         before = psnr(evaluate_albedo(model, eval_f, eval_b), eval_target)
-        if params.kernel.linear_colour:
-            linear = guarded_colour_solve(model, mesh, rng, len(eval_f), linear=True)
-            linear["surface_psnr_before"] = before
-        # refused, untrained slopes leave a §4-5 set, which takes the constant solve as usual
-        if params.polish_colors and not model.linear_colour:
-            polish = guarded_colour_solve(model, mesh, rng, len(eval_f))
-            polish["surface_psnr_before"] = before
+        polish = guarded_colour_solve(model, mesh, rng, len(eval_f))
+        polish["surface_psnr_before"] = before
         timings["polish_s"] = time.perf_counter() - t_polish
 
     t2 = time.perf_counter()
@@ -414,8 +394,6 @@ def fit_uv(
     }
     if polish is not None:
         metrics["colour_solve"] = polish
-    if linear is not None:
-        metrics["linear_colour_solve"] = linear
     kernelset = model.to_kernelset(fitting={"task": "fit_uv", "steps": loop.steps})
     t3 = time.perf_counter()
     nbytes = kernelset_bytes(kernelset)

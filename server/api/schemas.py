@@ -77,9 +77,9 @@ class FitParamsIn(_Strict):
     )
     colour: Literal["constant", "linear"] | None = Field(
         None,
-        description="kernel colour: ALGORITHM.md §4's constant residual, or 'linear' (a slope per"
-        " kernel solved after the last step of a UV fit, kept only if it wins on validation"
-        " points; .hkt versions 9/10, which a §4-5 reader cannot score; docs/fitting.md)",
+        description="kernel colour: ALGORITHM.md §4's constant residual, or 'linear' (a colour"
+        " slope per kernel, trained from slope_start of a UV fit; .hkt versions 9/10, which a"
+        " §4-5 reader cannot score; docs/fitting.md)",
     )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
@@ -114,9 +114,8 @@ class FitParamsIn(_Strict):
     slope_start: float | None = Field(
         None,
         ge=0,
-        le=1,
-        description="linear colours: fraction of the steps before the slopes train (1: solved"
-        " after the last step only)",
+        lt=1,
+        description="linear colours: fraction of the steps before the slopes train (0.4)",
     )
     eval_points: int | None = Field(
         None, ge=100, le=1_000_000, description="surface points for the final metrics (fit_uv)"
