@@ -20,7 +20,7 @@ difference needs (version 2: the ids themselves), two barycentrics on the simple
 midpoints of ``[0.3, 1]`` (so a code never reaches 1), colours linear per channel over their
 own range. Version 4 puts the packed members' deflate streams one after another in a single
 stored member ``codes.bin`` and the base colour in the manifest; versions 2 and 3 kept one
-``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 8; a version-1 file is
+``uint8`` ``.npy`` member each. :func:`load_hkt` reads versions 1 to 10; a version-1 file is
 written unless quantisation is asked for, so older readers keep reading what they read before.
 
 A set for the layered blend (``KernelConfig.blend = "layered"``, ``kernels.blending``) has one
@@ -38,7 +38,8 @@ and a reader older than them refuses such a set by its version.
 
 A set with linear colours (``KernelConfig.colour = "linear"``) has the member
 ``color_slopes`` (N, 9: each kernel's 3 x 3 slope, channel-major; float16 when compact;
-quantised linear per column over the column's own range, like the colours, 8 bits): version
+quantised linear per column over the column's own range, like the colours, at the colours'
+width unless ``bits`` names its own): version
 9 is version 1 with it, version 10 version 4 with its codes as the last stream, each after
 ``priority`` and ``sigma_ratio`` when the set's blend and scale use them (the manifest's
 ``blend`` and ``sigma`` say so). Neither a §4-5 set nor a set without slopes is ever written as

@@ -293,8 +293,8 @@ class HeatKernelModel(nn.Module):
             else torch.log(_float(sigma_ratio, dev, dt))
         )
         self.log_sigma = nn.Parameter(log_sigma, requires_grad=self.per_kernel_sigma)
-        # colour slopes (N, 3, 3): read and learnt only when the config says linear (solved
-        # after the optimiser by fitting.colour_solve, and trained from FitParams.slope_start)
+        # colour slopes (N, 3, 3): read and learnt only when the config says linear (trained
+        # from FitParams.slope_start; fitting.colour_solve can also solve them, a measurement)
         slopes = torch.zeros((n, 3, 3), device=dev, dtype=dt)
         if color_slopes is not None:
             slopes = _float(color_slopes, dev, dt).reshape(n, 3, 3)
@@ -869,7 +869,9 @@ class HeatKernelModel(nn.Module):
         self, kid: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor
     ) -> torch.Tensor:
         """``G_j (x(y) - x(c_j))`` (P, K_c, 3) of the chosen kernels at the points; padding
-        ids (``rho`` 0) read the last kernel's, which the blend weighs by 0."""
+        ids (``rho`` 0) read the last kernel's, which the blend weighs by 0. The offsets carry
+        no gradient to the centres, which keep moving by their footprints' pull alone, as
+        ALGORITHM.md §6 has them (a colour never pulls a centre there)."""
         k = kid.clamp(max=len(self) - 1)
         x = self.field.positions(face_ids, bary.detach()).to(self.colors.dtype)
         offset = x[:, None, :] - self.centre_positions().to(self.colors.dtype)[k]
