@@ -101,6 +101,22 @@ def reference_albedo(spectra, kp, config, face_ids, bary):
     return out, rho
 
 
+def assert_extension_member_checked(ks, name: str, owner: str) -> None:
+    """An extension's member (``priority``, ``sigma_ratio``, ``color_slopes``) is refused
+    when its set lacks it, when a §4-5 set carries it, and when it holds a NaN."""
+    from dataclasses import replace
+
+    from hktex_engine.errors import KernelSetError
+    from hktex_engine.kernels.hkt import encode_hkt
+
+    with pytest.raises(KernelSetError, match=f"needs member '{name}'"):
+        encode_hkt(replace(ks, **{name: None}), compact=True)
+    with pytest.raises(KernelSetError, match=f"{owner} only"):
+        encode_hkt(replace(ks, kernel_config=CONFIG), compact=True)
+    with pytest.raises(KernelSetError, match=name):
+        encode_hkt(replace(ks, **{name: np.full_like(getattr(ks, name), np.nan)}), compact=True)
+
+
 def assert_float32_query_paths_match(
     spectra, field64, kp, config, face_ids, bary, fused, table_path, monkeypatch
 ):

@@ -20,6 +20,7 @@ from hktex_engine.spectra.interpolation import SpectralField
 from tests.kernels_support import random_points
 from tests.test_kernels import (
     CONFIG,
+    assert_extension_member_checked,
     assert_float32_query_paths_match,
     assert_float64_paths_match,
     make_model,
@@ -128,12 +129,7 @@ def test_storage_round_trips_and_versions(field64, layered_case):
 def test_storage_refuses_a_blend_its_version_cannot_hold(field64, layered_case):
     kp = layered_case[0]
     ks = make_model(field64, kp, LAYERED).to_kernelset()
-    with pytest.raises(KernelSetError, match="needs member 'priority'"):
-        encode_hkt(replace(ks, priority=None), compact=True)
-    with pytest.raises(KernelSetError, match="layered blend only"):
-        encode_hkt(replace(ks, kernel_config=CONFIG), compact=True)
-    with pytest.raises(KernelSetError, match="priority"):
-        encode_hkt(replace(ks, priority=np.full(len(ks), np.nan)), compact=True)
+    assert_extension_member_checked(ks, "priority", "the layered blend")
     # a version-5 manifest rewritten to claim the paper's blend
     buf = io.BytesIO(encode_hkt(ks, compact=True))
     out = io.BytesIO()

@@ -26,6 +26,7 @@ from tests.kernels_support import random_points, tiny_spectra
 from tests.test_fused_training import step_grads
 from tests.test_kernels import (
     CONFIG,
+    assert_extension_member_checked,
     assert_float32_query_paths_match,
     assert_float64_paths_match,
     make_model,
@@ -189,12 +190,7 @@ def _rewrite_manifest(payload: bytes, **changes) -> bytes:
 def test_storage_refuses_what_its_version_cannot_hold(field64, case):
     kp = case[0]
     ks = make_model(field64, kp, PER_KERNEL).to_kernelset()
-    with pytest.raises(KernelSetError, match="needs member 'sigma_ratio'"):
-        encode_hkt(replace(ks, sigma_ratio=None), compact=True)
-    with pytest.raises(KernelSetError, match="per-kernel-sigma set only"):
-        encode_hkt(replace(ks, kernel_config=CONFIG), compact=True)
-    with pytest.raises(KernelSetError, match="sigma_ratio"):
-        encode_hkt(replace(ks, sigma_ratio=np.full(len(ks), np.nan)), compact=True)
+    assert_extension_member_checked(ks, "sigma_ratio", "a per-kernel-sigma set")
     with pytest.raises(KernelSetError, match="out of range"):
         encode_hkt(replace(ks, sigma_ratio=np.full(len(ks), 3.0)), compact=True)
     # a version-7 file whose manifest claims sigma_B for all, and a version-1 claiming more
