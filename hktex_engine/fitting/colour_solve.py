@@ -105,14 +105,13 @@ def slope_offsets(
     model: HeatKernelModel, face_ids: np.ndarray, bary: np.ndarray, indices: np.ndarray
 ) -> np.ndarray:
     """Each point's offset from its chosen kernels' centres in the normalised frame (P, K_c,
-    3), times :data:`SLOPE_COLUMN_SCALE`; padding ids read the last kernel (weight 0)."""
+    3), times :data:`SLOPE_COLUMN_SCALE` (:meth:`HeatKernelModel.centre_offsets`)."""
     dev, dt = model.base_color.device, model.base_color.dtype
     f = torch.as_tensor(face_ids, device=dev)
     b = torch.as_tensor(bary, device=dev, dtype=dt)
-    x = model.field.positions(f, b).cpu().numpy().astype(np.float64)
-    c = model.centre_positions().cpu().numpy().astype(np.float64)
-    k = np.minimum(indices, len(model) - 1)
-    return (x[:, None, :] - c[k]) * SLOPE_COLUMN_SCALE
+    k = torch.as_tensor(indices, device=dev)
+    offsets = model.centre_offsets(k, f, b).cpu().numpy().astype(np.float64)
+    return offsets * SLOPE_COLUMN_SCALE
 
 
 def solve_colours(

@@ -446,9 +446,16 @@ class HeatKernelModel(nn.Module):
         self.color_slopes.grad = None
         self._check_shapes()
 
-    def centre_positions(self) -> torch.Tensor:
-        """The kernels' centres in the normalised frame (N, 3), without a graph."""
-        return self.field.positions(self.face_ids, self.bary.detach())
+    def centre_offsets(
+        self, kid: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor
+    ) -> torch.Tensor:
+        """``x(y) - x(c_j)`` (P, K, 3) in the normalised frame, from points ``(face_ids,
+        bary)`` to their kernels ``kid`` (P, K), without a graph; padding ids (``rho`` 0)
+        read the last kernel's, which the blend weighs by 0. What a colour slope multiplies
+        (the model's mix, and the colour solve's slope columns)."""
+        k = kid.clamp(max=len(self) - 1)
+        x = self.field.positions(face_ids, bary.detach())
+        return x[:, None, :] - self.field.positions(self.face_ids, self.bary.detach())[k]
 
     def sigma_ratio(self, idx: torch.Tensor | None = None) -> torch.Tensor | None:
         """``s_j = sigma_j / sigma_B`` of kernels ``idx`` (all when None), with a graph when
@@ -868,14 +875,12 @@ class HeatKernelModel(nn.Module):
     def _slope_terms(
         self, kid: torch.Tensor, face_ids: torch.Tensor, bary: torch.Tensor
     ) -> torch.Tensor:
-        """``G_j (x(y) - x(c_j))`` (P, K_c, 3) of the chosen kernels at the points; padding
-        ids (``rho`` 0) read the last kernel's, which the blend weighs by 0. The offsets carry
-        no gradient to the centres, which keep moving by their footprints' pull alone, as
-        ALGORITHM.md §6 has them (a colour never pulls a centre there)."""
-        k = kid.clamp(max=len(self) - 1)
-        x = self.field.positions(face_ids, bary.detach()).to(self.colors.dtype)
-        offset = x[:, None, :] - self.centre_positions().to(self.colors.dtype)[k]
-        return torch.einsum("pkcd,pkd->pkc", self.color_slopes[k], offset)
+        """``G_j (x(y) - x(c_j))`` (P, K_c, 3) of the chosen kernels at the points. The
+        offsets carry no gradient to the centres, which keep moving by their footprints' pull
+        alone, as ALGORITHM.md §6 has them (a colour never pulls a centre there)."""
+        offset = self.centre_offsets(kid, face_ids, bary).to(self.colors.dtype)
+        slopes = self.color_slopes[kid.clamp(max=len(self) - 1)]
+        return torch.einsum("pkcd,pkd->pkc", slopes, offset)
 
     def _grad_needed(self) -> bool:
         return torch.is_grad_enabled() and any(p.requires_grad for p in self._row_params())
