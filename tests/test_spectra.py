@@ -153,6 +153,8 @@ def _same_grid(a, b) -> None:
 
 def test_spawned_workers_give_the_same_grid(mesh, tiny, monkeypatch):
     monkeypatch.setattr(spectra_mod, "worker_context", lambda: multiprocessing.get_context("spawn"))
+    # and load the compiled solves in their initializer, as grids from PRELOAD_MIN_N do
+    monkeypatch.setattr(spectra_mod, "PRELOAD_MIN_N", 0)
     _same_grid(compute_spectra(mesh, TINY, workers=2), tiny)
 
 
@@ -188,6 +190,60 @@ def test_the_command_line_forks_its_workers_and_stores_the_same_grid(mesh, tmp_p
     stored = load_spectra(out)
     assert stored.manifest["solver"]["workers"] == 2
     _same_grid(stored, compute_spectra(load_mesh(obj, read_texture=False), TINY))
+
+
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_grids_load_the_compiled_solves_before_their_workers(monkeypatch, mesh, start):
+    """From PRELOAD_MIN_N vertices a grid loads the compiled triangular solves once: in this
+    process before a forked pool (the workers inherit them), in each spawned worker through
+    the pool's initializer; below it, nowhere."""
+    from hktex_engine.spectra import triangular
+
+    seen = []
+
+    class Pool:  # records how the pool was made, solves in this process
+        def __init__(self, max_workers, mp_context, initializer):
+            seen.append((mp_context.get_start_method(), initializer, triangular._preloaded))
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            from concurrent.futures import Future
+
+            fut = Future()
+            fut.set_result(fn(*args))
+            return fut
+
+    monkeypatch.setattr(spectra_mod, "ProcessPoolExecutor", Pool)
+    monkeypatch.setattr(spectra_mod, "worker_context", lambda: multiprocessing.get_context(start))
+    monkeypatch.setattr(
+        spectra_mod, "solve_node_timed", lambda L, mass, k, e, s, tol: (None, None, 0.0, "fake")
+    )
+    tasks = [(None, 4, 1.0, 1e-6)] * 2
+    for min_n, expect in ((10**9, False), (0, triangular.HAVE_NUMBA)):
+        monkeypatch.setattr(triangular, "_preloaded", False)
+        monkeypatch.setattr(spectra_mod, "PRELOAD_MIN_N", min_n)
+        assert len(list(spectra_mod._cold_solutions(iter(tasks), mesh.vertices, 2))) == 2
+        method, initializer, parent_loaded = seen.pop()
+        assert method == start
+        if start == "fork":
+            assert initializer is None and parent_loaded == expect
+        else:
+            assert parent_loaded is False
+            assert initializer is (triangular.preload if min_n == 0 else None)
+
+
+def test_a_grid_solved_with_the_compiled_solves_is_the_same(monkeypatch, mesh, tiny):
+    from hktex_engine.spectra import triangular
+
+    monkeypatch.setattr(triangular, "_preloaded", False)
+    monkeypatch.setattr(spectra_mod, "PRELOAD_MIN_N", 0)
+    _same_grid(compute_spectra(mesh, TINY), tiny)
+    assert triangular._preloaded == triangular.HAVE_NUMBA
 
 
 def test_workers_fork_only_from_a_single_threaded_process_without_torch(monkeypatch):

@@ -53,6 +53,27 @@ def test_without_numba_superlu_solves(monkeypatch):
     np.testing.assert_array_equal(fs.solve(B), lu.solve(B))
 
 
-def test_small_factors_are_left_to_superlu():
+def test_small_factors_are_left_to_superlu(monkeypatch):
+    monkeypatch.setattr(triangular, "_preloaded", False)
     lu = splu(_indefinite_laplacian(10))
     assert not FactorSolve(lu).compiled  # 100 unknowns: below COMPILED_MIN_N
+
+
+def test_once_preloaded_the_compiled_loops_solve_small_factors(monkeypatch):
+    """The loading cost is what kept small factors with SuperLU; a process that has paid it
+    (a spectra grid preloads) solves compiled at every size, with SuperLU's answer."""
+    monkeypatch.setattr(triangular, "_preloaded", False)
+    lu = splu(_indefinite_laplacian(10), permc_spec="MMD_AT_PLUS_A", **FACTOR_OPTIONS)
+    assert triangular.preload() == triangular.HAVE_NUMBA
+    fs = FactorSolve(lu)
+    assert fs.compiled == triangular.HAVE_NUMBA
+    B = np.random.default_rng(3).standard_normal((lu.shape[0], 8))
+    np.testing.assert_allclose(fs.solve(B), lu.solve(B), rtol=1e-10, atol=1e-10)
+    assert not FactorSolve(lu, min_n=1000).compiled  # an explicit threshold still holds
+
+
+def test_preload_without_numba_changes_nothing(monkeypatch):
+    monkeypatch.setattr(triangular, "_preloaded", False)
+    monkeypatch.setattr(triangular, "HAVE_NUMBA", False)
+    assert triangular.preload() is False
+    assert not FactorSolve(splu(_indefinite_laplacian(10))).compiled

@@ -38,6 +38,7 @@ from hktex_engine.geometry.operators import (
     reference_tangent_field,
 )
 from hktex_engine.progress import NullProgress, Progress, check_cancel
+from hktex_engine.spectra import triangular
 from hktex_engine.spectra.alignment import align_basis
 from hktex_engine.spectra.eigensolver import (
     BLOCK_TOL,
@@ -256,6 +257,19 @@ def worker_context() -> multiprocessing.context.BaseContext:
     return multiprocessing.get_context("spawn")
 
 
+#: A grid loads the compiled triangular solves (``triangular.preload``, ~0.25 s of a core from
+#: numba's cache) from this many vertices on, below the single-factor threshold
+#: ``triangular.COMPILED_MIN_N``, because a grid is ~49 node solves of ~40 block solves
+#: each. Measured 2026-12-05/06 (``hktex spectra --workers 1`` on one core, defaults, wall
+#: time, HEAD against this, min of 2-3 alternating runs): spot (2,930 vertices) 4.95 against
+#: 4.98 s (level: its nodes gained 0.37 s, the load cost 0.25), bob (5,344) 9.19 -> 7.96,
+#: blub (7,106) 10.60 -> 9.58, marble_bust_01 (8,730) 13.78 -> 11.69 (-10 to -15 %). With
+#: two workers (preloaded before the fork, the machine otherwise idle): spot 3.24 -> 3.30,
+#: bob 5.10 -> 5.32, blub 6.59 -> 6.14, marble 7.89 -> 6.97. Hence the threshold between
+#: spot and bob.
+PRELOAD_MIN_N = 4_000
+
+
 def _cold_solutions(
     tasks: Iterator[tuple[sp.csr_matrix, int, float, float]],
     mass: np.ndarray,
@@ -268,9 +282,13 @@ def _cold_solutions(
     At most ``2 * workers + 1`` results are in flight, so memory stays bounded by a few bases
     however large the grid, and the workers keep busy while this process waits on a long
     task (the isotropic solve, first in the queue, takes 2-3 nodes' time). Workers start as
-    :func:`worker_context` says.
+    :func:`worker_context` says. From :data:`PRELOAD_MIN_N` vertices the compiled triangular
+    solves are loaded first: here, so forked workers inherit them, or in each spawned worker.
     """
+    preload = len(mass) >= PRELOAD_MIN_N
     if workers <= 1:
+        if preload:
+            triangular.preload()
         # one BLAS thread: the block solver's tall-skinny GEMMs ran 2x *slower* with
         # OpenBLAS's 2 threads than with 1 (20k torus, K = 64: 2.03 s against 1.04 s)
         with threadpool_limits(limits=1, user_api="blas"):
@@ -278,6 +296,9 @@ def _cold_solutions(
                 yield solve_node_timed(L, mass, k, estimate, solver, tol)
         return
     ctx = worker_context()
+    forked = ctx.get_start_method() == "fork"
+    if preload and forked:
+        triangular.preload()
     # one BLAS thread per worker (the workers are the parallelism; spawned children read
     # these at start-up, forked ones inherit the limit set below), unless the caller chose
     # otherwise
@@ -290,7 +311,11 @@ def _cold_solutions(
         # node alone, 98 ms beside two workers, 35k vertices)
         with (
             threadpool_limits(limits=1, user_api="blas"),
-            ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool,
+            ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=ctx,
+                initializer=triangular.preload if preload and not forked else None,
+            ) as pool,
         ):
             pending: deque = deque()
             try:
