@@ -265,8 +265,8 @@ def worker_context() -> multiprocessing.context.BaseContext:
 #: 4.98 s (level: its nodes gained 0.37 s, the load cost 0.25), bob (5,344) 9.19 -> 7.96,
 #: blub (7,106) 10.60 -> 9.58, marble_bust_01 (8,730) 13.78 -> 11.69 (-10 to -15 %). With
 #: two workers (preloaded before the fork, the machine otherwise idle): spot 3.24 -> 3.30,
-#: bob 5.10 -> 5.32, blub 6.59 -> 6.14, marble 7.89 -> 6.97. Hence the threshold between
-#: spot and bob.
+#: bob 5.10 -> 5.32 (re-measured: 5.49 -> 5.27), blub 6.59 -> 6.14 (6.90 -> 6.63), marble
+#: 7.89 -> 6.97. Hence the threshold between spot and bob.
 PRELOAD_MIN_N = 4_000
 
 
