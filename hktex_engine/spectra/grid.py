@@ -259,14 +259,11 @@ def worker_context() -> multiprocessing.context.BaseContext:
 
 #: A grid loads the compiled triangular solves (``triangular.preload``, ~0.25 s of a core from
 #: numba's cache) from this many vertices on, below the single-factor threshold
-#: ``triangular.COMPILED_MIN_N``, because a grid is ~49 node solves of ~40 block solves
-#: each. Measured 2026-12-05/06 (``hktex spectra --workers 1`` on one core, defaults, wall
-#: time, HEAD against this, min of 2-3 alternating runs): spot (2,930 vertices) 4.95 against
-#: 4.98 s (level: its nodes gained 0.37 s, the load cost 0.25), bob (5,344) 9.19 -> 7.96,
-#: blub (7,106) 10.60 -> 9.58, marble_bust_01 (8,730) 13.78 -> 11.69 (-10 to -15 %). With
-#: two workers (preloaded before the fork, the machine otherwise idle): spot 3.24 -> 3.30,
-#: bob 5.10 -> 5.32 (re-measured: 5.49 -> 5.27), blub 6.59 -> 6.14 (6.90 -> 6.63), marble
-#: 7.89 -> 6.97. Hence the threshold between spot and bob.
+#: ``triangular.COMPILED_MIN_N``, because a grid is ~49 node solves of ~40 block solves each.
+#: Measured (``hktex spectra --workers 1``, one core): spot (2,930 vertices) level, bob
+#: (5,344), blub and marble_bust_01 10-15 % faster; with two workers 4-12 %. Hence the
+#: threshold between spot and bob (figures: docs/spectra.md, "Compiled solves loaded once
+#: per grid").
 PRELOAD_MIN_N = 4_000
 
 
