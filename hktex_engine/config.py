@@ -171,17 +171,12 @@ class DensityRules:
     split_size: float = 0.235
     split_offset: float = 0.2
     split_shrink: float = 1.6
-    #: 0: clones are exact copies (§7). Otherwise a clone is traced ``(1 - eps) *
-    #: clone_offset`` along its parent's long axis (docs/fitting.md, twentieth pass)
-    clone_offset: float = 0.0
     stats: Literal["mean", "step_sum"] = "mean"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "prune_at", tuple(float(f) for f in self.prune_at))
         if self.stats not in ("mean", "step_sum"):
             raise ValueError("density stats must be 'mean' or 'step_sum'")
-        if not 0.0 <= self.clone_offset <= 1.0:
-            raise ValueError("density clone_offset must be in [0, 1]")
 
 
 @dataclass(frozen=True)

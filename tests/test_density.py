@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 import torch
 
 from hktex_engine.config import FitParams
@@ -196,45 +195,6 @@ def test_split_children_on_a_flat_patch():
         assert torch.allclose(new_eps, 1 - (1 - eps[split]) / 1.6)
     # parents gone: survivors keep order
     assert torch.allclose(model.theta.detach()[: n - 3], theta[keep])
-
-
-def test_offset_clones_on_a_flat_patch_alternate_sides_along_the_long_axis():
-    v, f = grid_patch(11, 11, size=2.0)
-    n = 40
-    rng = np.random.default_rng(1)
-    model = ToyModel(v, f, np.full(n, 110), rng.dirichlet(np.ones(3), n))
-    with torch.no_grad():
-        model.theta.copy_(torch.linspace(0, math.pi, n, dtype=DT))
-        model.threshold.copy_(torch.linspace(0.5, 0.99, n, dtype=DT))
-    rules = DensityRules(clone_offset=0.3)
-    ctl, _ = _controller(model, v, f, SurfaceTracer(v, f), density=rules)
-    x = model.centres().detach()
-    theta, eps = model.theta.detach(), model.threshold.detach()
-    clone = torch.tensor([2, 17, 31])
-    rows = ctl.new_rows(model, clone, torch.zeros(0, dtype=torch.long))
-    # on a flat patch the geodesic is the straight segment: x + s (1 - eps) 0.3 (cos, sin, 0)
-    bary = rows["bary"].to(DT)
-    got = (
-        torch.as_tensor(v, dtype=DT)[torch.as_tensor(f)[rows["face_ids"]]] * bary[..., None]
-    ).sum(1)
-    sign = torch.tensor([1.0, -1.0, 1.0], dtype=DT)
-    u = torch.stack([torch.cos(theta[clone]), torch.sin(theta[clone]), 0 * theta[clone]], 1)
-    expect = x[clone] + (sign * (1 - eps[clone]) * 0.3)[:, None] * u
-    assert torch.allclose(got, expect, atol=1e-9)
-    # every other attribute is the parent's
-    for name in ("theta", "threshold", "sharpness", "colors"):
-        assert torch.equal(rows[name], getattr(model, name).detach()[clone]), name
-    # the rule's default keeps exact copies (the paper's clone)
-    exact, _ = _controller(model, v, f, SurfaceTracer(v, f))
-    same = exact.new_rows(model, clone, torch.zeros(0, dtype=torch.long))
-    assert torch.equal(same["face_ids"], model.face_ids[clone])
-    assert torch.equal(same["bary"], model.bary.detach()[clone])
-
-
-def test_clone_offset_outside_its_range_is_refused():
-    for bad in (-0.1, 1.5):
-        with pytest.raises(ValueError, match="clone_offset"):
-            DensityRules(clone_offset=bad)
 
 
 def test_act_resizes_optimiser_state_and_stats_with_the_kernels():

@@ -282,56 +282,45 @@ class DensityController:
 
     @torch.no_grad()
     def new_rows(self, model, clone: torch.Tensor, split: torch.Tensor) -> dict:
-        """Rows for clones and split children (two per parent, traced apart).
+        """Rows for clones (exact copies) and split children (two per parent, traced apart).
 
-        A clone is an exact copy (ALGORITHM.md §7) unless ``rules.clone_offset`` is set: then
-        it is traced ``(1 - eps) * clone_offset`` along its parent's long axis, to alternate
-        sides in selection order (the parent stays where it is), so the pair starts with
-        different gradients instead of separating only through the parent's optimiser state.
         Children keep their parent's theta by default: the parent's kernel is shaped by the
         global field at angle theta from every face's u_ref, so the same number orients each
         child like the parent's footprint where the child lands. With ``transport_theta`` a
         child that lands in another face instead gets its parent's long axis
         parallel-transported along its path and theta re-expressed against that face's u_ref
-        (``optimise.theta_in_faces``). New rows start with zero optimiser state either way.
+        (``optimise.theta_in_faces``). Children start with zero optimiser state either way.
         """
         rows = {name: getattr(model, name).detach() for name in KERNEL_ATTRIBUTES}
-        if self.rules.clone_offset > 0 and clone.numel():
-            sign = 1.0 - 2.0 * (torch.arange(clone.numel(), device=clone.device) % 2)
-            reach = (1.0 - rows["threshold"][clone]) * self.rules.clone_offset
-            out = self._traced_copies(rows, clone, sign * reach)
-        else:
-            out = {name: t[clone] for name, t in rows.items()}
+        out = {name: t[clone] for name, t in rows.items()}
         if split.numel() == 0:
             return out
         eps = rows["threshold"][split]
-        reach = (1.0 - eps) * self.rules.split_offset
-        children = self._traced_copies(rows, torch.cat([split, split]), torch.cat([reach, -reach]))
+        f, b = rows["face_ids"][split], rows["bary"][split]
+        theta = rows["theta"][split]
+        axes = axis_pair(self.face_frames, self.face_normals, f, theta)  # (S, 2, 3) float64
+        offset = ((1.0 - eps) * self.rules.split_offset).to(axes.dtype)[:, None] * axes[:, 0]
+        f2, axes2, theta2 = torch.cat([f, f]), torch.cat([axes, axes]), torch.cat([theta, theta])
+        offsets = torch.cat([offset, -offset])
+        if self.transport_theta:
+            end_f, end_b, _, end_axes = trace_transporting(
+                self.tracer, f2, torch.cat([b, b]), offsets, axes2
+            )
+        else:
+            end_f, end_b, _ = trace_on_surface(self.tracer, f2, torch.cat([b, b]), offsets)
+        children = {name: torch.cat([t[split], t[split]]) for name, t in rows.items()}
+        children["face_ids"] = end_f
+        children["bary"] = end_b.to(rows["bary"].dtype)
+        moved = torch.nonzero(end_f != f2).squeeze(1)
+        if self.transport_theta and moved.numel():
+            new_theta, _ = theta_in_faces(
+                self.face_frames, self.face_normals, end_f[moved], end_axes[moved], theta2[moved]
+            )
+            children["theta"] = children["theta"].clone()
+            children["theta"][moved] = new_theta.to(children["theta"].dtype)
         shrunk = 1.0 - (1.0 - eps) / self.rules.split_shrink
         children["threshold"] = torch.cat([shrunk, shrunk])
         return {name: torch.cat([out[name], children[name]]) for name in out}
-
-    def _traced_copies(self, rows: dict, idx: torch.Tensor, along: torch.Tensor) -> dict:
-        """Copies of rows ``idx``, each centre traced the signed distance ``along`` on the
-        surface in the direction of its kernel's long axis (theta transported if asked)."""
-        f, b, theta = rows["face_ids"][idx], rows["bary"][idx], rows["theta"][idx]
-        axes = axis_pair(self.face_frames, self.face_normals, f, theta)  # (S, 2, 3) float64
-        offsets = along.to(axes.dtype)[:, None] * axes[:, 0]
-        if self.transport_theta:
-            end_f, end_b, _, end_axes = trace_transporting(self.tracer, f, b, offsets, axes)
-        else:
-            end_f, end_b, _ = trace_on_surface(self.tracer, f, b, offsets)
-        out = {name: t[idx] for name, t in rows.items()}
-        out["face_ids"] = end_f
-        out["bary"] = end_b.to(rows["bary"].dtype)
-        moved = torch.nonzero(end_f != f).squeeze(1)
-        if self.transport_theta and moved.numel():
-            new_theta, _ = theta_in_faces(
-                self.face_frames, self.face_normals, end_f[moved], end_axes[moved], theta[moved]
-            )
-            out["theta"] = out["theta"].clone()
-            out["theta"][moved] = new_theta.to(out["theta"].dtype)
-        return out
 
     # --- checkpoint support ------------------------------------------------------------
 
