@@ -139,15 +139,54 @@ def _nearest_clustered(emb_y, emb_c, order, starts, centroid, radius, k, out_id,
             out_d2[p, i] = hd[i]
 
 
+def _half_row(src, bits, vals):
+    """``vals = float32(src)`` for one row of float16 bit patterns, exactly (numba has no
+    float16; written by hand because no library converts inside a compiled loop). The
+    exponent is rebased from 15 to 127 with integer operations; subnormal halves are
+    renormalised by one exact float subtraction of ``2^-14`` (no float32 subnormal ever
+    enters an arithmetic operation, which costs microcode assists on some CPUs); infinities
+    and NaNs keep an all-ones exponent. ``vals`` is ``bits`` viewed as float32. Tested on
+    all 65,536 patterns."""
+    for q in range(src.shape[0]):
+        u = (np.int64(src[q]) & 0x7FFF) << 13
+        e = u & 0x0F800000
+        u += 0x38000000
+        if e == 0x0F800000:
+            u += 0x38000000
+        if e == 0:
+            u += 0x00800000
+        bits[q] = u
+    for q in range(src.shape[0]):
+        h = np.int64(src[q])
+        sub = np.float32(6.103515625e-05) if (h & 0x7C00) == 0 else np.float32(0.0)
+        sign = np.float32(-1.0) if (h & 0x8000) != 0 else np.float32(1.0)
+        vals[q] = (vals[q] - sub) * sign
+
+
+def _half_to_float32(src, out):
+    """:func:`_half_row` over the rows of a 2-D array (the tests' check of the conversion)."""
+    bits = np.empty(src.shape[1], np.int32)
+    vals = bits.view(np.float32)
+    for r in range(src.shape[0]):
+        _half_row(src[r], bits, vals)
+        for q in range(src.shape[1]):
+            out[r, q] = vals[q]
+
+
 def _rank_points(
-    verts, bary, local, d2, evecs, coef, norm, nodes, weights, thr, sharp, low, high,
+    verts, bary, local, d2, evecs, half, coef, norm, nodes, weights, thr, sharp, low, high,
     scale, k_c, keep, out_top, out_dots, out_blend, out_rho,
 ):  # fmt: skip
     """Per point: responses of its candidates, the ``k_c`` best by the rule, and for those
-    ``dots`` (coef . Phi_y[node]) and ``blend`` (sum_c w_c Phi_y[node_c])."""
-    n_nodes, k = evecs.shape[1], evecs.shape[2]
+    ``dots`` (coef . Phi_y[node]) and ``blend`` (sum_c w_c Phi_y[node_c]). The grid is
+    ``evecs`` (float32), or ``half`` (float16 bit patterns, read in place) when ``evecs``
+    has no rows."""
+    use_half = evecs.shape[0] == 0
+    n_nodes, k = (half.shape[1], half.shape[2]) if use_half else (evecs.shape[1], evecs.shape[2])
     c_count = local.shape[1]
     phi = np.empty((n_nodes, k), np.float32)
+    bits = np.empty((3, k), np.int32)
+    rows = bits.view(np.float32)
     dots = np.empty((c_count, 4), np.float32)
     rho = np.empty(c_count, np.float32)
     top = np.empty(k_c, np.int64)
@@ -158,8 +197,15 @@ def _rank_points(
         # the point's eigenfunctions on every node: three contiguous (G, K) vertex blocks,
         # read in order (a candidate-driven order of nodes measured slower: cache misses)
         for g in range(n_nodes):
-            for q in range(k):
-                phi[g, q] = b0 * evecs[v0, g, q] + b1 * evecs[v1, g, q] + b2 * evecs[v2, g, q]
+            if use_half:
+                _half_row(half[v0, g], bits[0], rows[0])
+                _half_row(half[v1, g], bits[1], rows[1])
+                _half_row(half[v2, g], bits[2], rows[2])
+                for q in range(k):
+                    phi[g, q] = b0 * rows[0, q] + b1 * rows[1, q] + b2 * rows[2, q]
+            else:
+                for q in range(k):
+                    phi[g, q] = b0 * evecs[v0, g, q] + b1 * evecs[v1, g, q] + b2 * evecs[v2, g, q]
         for i in range(c_count):
             j = local[p, i]
             h = np.float32(0.0)
@@ -194,6 +240,7 @@ def _rank_points(
 _NEAREST = None
 _RANK = None
 _GROUP = None
+_HALF = None
 _unit = compiled.unit
 _choose = compiled.choose_by_rule
 
@@ -201,9 +248,11 @@ _choose = compiled.choose_by_rule
 def _kernels():
     """The compiled loops (built on first use, then loaded from numba's disk cache)."""
     global _NEAREST, _RANK, _unit, _exact_d2, _sort_by_rule, _worse, _heap_offer
-    global _choose, _GROUP
+    global _choose, _GROUP, _half_row, _HALF
     if _RANK is None:
         _GROUP = compiled.jit(_group)
+        _half_row = compiled.jit(_half_row, inline=True)
+        _HALF = compiled.jit(_half_to_float32)
         _unit, _, _choose, _ = compiled.helpers()
         _worse = compiled.jit(_worse, inline=True)
         _heap_offer = compiled.jit(_heap_offer, inline=True)
@@ -338,7 +387,7 @@ def rank_pairs(
     and ``blend`` (empty; a no-grad blend needs only ``top`` and ``rho``). ``ratio``: each
     row's ``sigma_j / sigma_b`` (a per-kernel-sigma set), else ``sigma_b`` for all."""
     _, kernel = _kernels()
-    evecs = field_evecs32(field)
+    evecs, half = ranking_grid(field, keep)
     verts = field.faces[face_ids].numpy()
     low = torch.sigmoid(-sharpness * threshold)  # soft_step's own expressions (same bits)
     high = torch.sigmoid(sharpness * (1 - threshold))
@@ -348,7 +397,7 @@ def rank_pairs(
     b = compiled.array(bary.to(torch.float32))
     loc = compiled.array(local)
     dd = compiled.array(d2.to(torch.float32))
-    p, kk = loc.shape[0], evecs.shape[2]
+    p, kk = loc.shape[0], max(evecs.shape[2], half.shape[2])
     k_c = min(int(k_c), loc.shape[1])
     top = np.empty((p, k_c), np.int64)
     dots = np.empty((p, k_c, 4) if keep else (p, 0, 4), np.float32)
@@ -357,7 +406,7 @@ def rank_pairs(
     scale = compiled.row_scales(sigma_b, ratio, norm.shape[0])
 
     def run(sl: slice) -> None:
-        kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, *attrs, scale, k_c, keep, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip
+        kernel(verts[sl], b[sl], loc[sl], dd[sl], evecs, half, *attrs, scale, k_c, keep, top[sl], dots[sl], blend[sl], rho[sl])  # fmt: skip
 
     compiled.run_threaded(run, p, THREAD_MIN_POINTS)
     return (torch.from_numpy(top), torch.from_numpy(dots), torch.from_numpy(blend), torch.from_numpy(rho))  # fmt: skip
@@ -380,10 +429,38 @@ def field_evecs32(field) -> np.ndarray:
 
 
 def has_float32(field) -> bool:
-    """Whether the field's grid is float32 already, or its copy was made (by training):
-    sparse no-grad queries rank compiled only then, so a query service holding float16
-    grids memory-mapped (shared between workers) makes no private copies of them."""
+    """Whether the field's grid is float32 already, or its copy was made (by training)."""
     return field.evecs.dtype == torch.float32 or getattr(field, "_evecs32", None) is not None
+
+
+def ranking_grid(field, keep: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The grid :func:`rank_pairs` reads: ``(float32 grid, empty)``, or ``(empty, float16
+    bit patterns)`` for a no-grad ranking (``keep=False``) of a float16 grid with no float32
+    copy. So sparse no-grad queries run compiled on a float16 grid read in place: a query
+    service holding grids memory-mapped (shared between workers) makes no private copy, and
+    a one-off ``hktex query`` pays no conversion of the whole grid. Training (``keep``) makes
+    the copy once per field (:func:`field_evecs32`): its steps read each point's rows again."""
+    e = field.evecs
+    if keep or has_float32(field) or e.dtype != torch.float16:
+        evecs = field_evecs32(field)
+        return evecs, np.empty((0, *evecs.shape[1:]), np.uint16)
+    half = compiled.array(e).view(np.uint16)
+    return np.empty((0, *half.shape[1:]), np.float32), half
+
+
+def can_rank(field) -> bool:
+    """Whether no-grad ranking can run compiled on this field's grid without a private copy
+    above :data:`EVECS32_MAX_BYTES` (a float16 grid is read in place)."""
+    return has_float32(field) or field.evecs.dtype == torch.float16 or fits(field)
+
+
+def half_to_float32(bits: np.ndarray) -> np.ndarray:
+    """float16 bit patterns (2-D uint16) as float32, by the compiled conversion the ranking
+    uses (for tests)."""
+    _kernels()
+    out = np.empty(bits.shape, np.float32)
+    _HALF(np.ascontiguousarray(bits, dtype=np.uint16), out)
+    return out
 
 
 def fits(field) -> bool:

@@ -79,6 +79,12 @@ KNN_MARGIN = 8
 #: "always" or "never" (the per-point KNN path).
 TABLE_PATH = "auto"
 TABLE_POINTS_PER_VERTEX = 2.0
+#: The same when the per-point path ranks compiled (CPU float32, ``kernels.fused_rank``,
+#: float16 grids read in place): ~7-12 us a point against ~160 us a vertex for a batch's own
+#: tables, so tables pay from ~25-30 points per distinct vertex (measured 2026-12-06, 8,192-
+#: vertex torus, 10,000 kernels, two threads: per-point faster at 22.7 per vertex, 0.177
+#: against 0.211 s; docs/kernels.md, "Sparse queries on float16 grids").
+TABLE_POINTS_PER_VERTEX_COMPILED = 32.0
 #: Largest whole-mesh candidate tables :meth:`HeatKernelModel.prepare_tables` keeps.
 TABLES_MAX_BYTES = 1024 * 2**20
 #: Relative round-off of the index's distances (float32 ``|q|^2 + |c|^2 - 2 q.c``) against
@@ -667,8 +673,9 @@ class HeatKernelModel(nn.Module):
 
         Whole-mesh tables (:meth:`prepare_tables`) are reused while the kernels do not change;
         otherwise a batch builds tables for its own vertices when it has at least
-        :data:`TABLE_POINTS_PER_VERTEX` points per distinct vertex (dense queries), else the
-        per-point path runs (``TABLE_PATH`` forces either).
+        :data:`TABLE_POINTS_PER_VERTEX` points per distinct vertex
+        (:data:`TABLE_POINTS_PER_VERTEX_COMPILED` where the per-point path ranks compiled),
+        else the per-point path runs (``TABLE_PATH`` forces either).
         """
         if TABLE_PATH == "never" or face_ids.numel() == 0:
             return None
@@ -680,7 +687,10 @@ class HeatKernelModel(nn.Module):
         if self._vtables is not None and self._vtables_key == key:
             if self._vtables.covers(verts):
                 return self._vtables
-        if TABLE_PATH != "always" and face_ids.shape[0] < TABLE_POINTS_PER_VERTEX * verts.numel():
+        per_vertex = (
+            TABLE_POINTS_PER_VERTEX_COMPILED if self.ranks_compiled() else TABLE_POINTS_PER_VERTEX
+        )
+        if TABLE_PATH != "always" and face_ids.shape[0] < per_vertex * verts.numel():
             return None
         tables = self._build_tables(verts)
         if not (self._vtables_full and self._vtables_key == key):
@@ -827,7 +837,7 @@ class HeatKernelModel(nn.Module):
                 n = face_ids.shape[0]
                 cand = torch.arange(len(self), device=self.field.device).expand(n, -1)
             plain = not self._grad_needed() and not (torch.is_grad_enabled() and bary.requires_grad)
-            compiled_rank = self._compiled_training() and fused_rank.has_float32(self.field)
+            compiled_rank = self.ranks_compiled()
             if plain and d2 is not None and compiled_rank:
                 kid, rho_top = self._ranked_no_grad(face_ids, bary, cand, d2)
             elif not self._grad_needed():
@@ -930,6 +940,13 @@ class HeatKernelModel(nn.Module):
             uniq = torch.arange(len(self), device=cand.device)
             return uniq, cand, self._spectral_terms(uniq, self._rows)
         return uniq, local, self._spectral_terms(uniq)
+
+    def ranks_compiled(self) -> bool:
+        """Whether no-grad per-point queries rank through the compiled loop (CPU float32;
+        a float16 grid is read in place, ``fused_rank.ranking_grid``)."""
+        return fused_rank.available(self.colors.device, self.colors.dtype) and fused_rank.can_rank(
+            self.field
+        )
 
     def _compiled_training(self) -> bool:
         return fused_rank.available(self.colors.device, self.colors.dtype) and fused_rank.fits(
