@@ -21,12 +21,6 @@ from hktex_engine.spectra.interpolation import SpectralField
 DEFAULT_MEMORY_BUDGET = 512 * 2**20
 #: Calls with at least this many points per mesh vertex build whole-mesh candidate tables.
 TABLES_POINTS_PER_VERTEX = 1.0
-#: Points per mesh vertex from which a one-off call (``hktex query``: the tables are built for
-#: it alone) builds whole-mesh tables, where the per-point path ranks compiled: 1.1-1.3 s of
-#: tables on an 8,192-vertex torus with 10,000 kernels (two threads) against ~12 us a point
-#: per point and ~1.8 us with tables, level at ~12 points per vertex (100,000 points: 1.32
-#: against 1.20 s), tables 2.2x faster at 37 (measured 2026-12-06, docs/kernels.md).
-ONE_OFF_TABLES_POINTS_PER_VERTEX = 16.0
 #: Barycentric rows may miss the simplex by this much (round-off in a caller's own tools).
 BARY_TOL = 1e-4
 #: numpy twin of the field's torch dtype (query batches are converted before torch sees them).
@@ -76,16 +70,6 @@ class AlbedoQuery:
     @property
     def device(self) -> torch.device:
         return self.field.device
-
-    def tables_pay_once(self, n_points: int) -> bool:
-        """Whether whole-mesh candidate tables pay for themselves within one call of
-        ``n_points`` points (a one-off query: nothing else will reuse them)."""
-        per_vertex = (
-            ONE_OFF_TABLES_POINTS_PER_VERTEX
-            if self.model.ranks_compiled()
-            else TABLES_POINTS_PER_VERTEX
-        )
-        return n_points >= per_vertex * self.field.n_vertices
 
     def bytes_per_point(self) -> int:
         """Upper estimate of tensor bytes one query point needs during evaluation.
