@@ -297,7 +297,7 @@ def test_sparse_no_grad_queries_equal_the_torch_path(field32, spectra3, monkeypa
     np.testing.assert_allclose(aux["rho"].numpy(), ref_aux["rho"].numpy(), atol=1e-5)
 
 
-def test_float16_grids_are_read_in_place_by_sparse_queries(field32, spectra3, monkeypatch):
+def test_float16_grids_are_read_in_place_by_sparse_queries(spectra3, monkeypatch):
     """A service holds float16 grids memory-mapped and shared between workers: sparse no-grad
     queries rank compiled on the float16 grid itself (no private float32 copy), with the same
     colours and choices as on the grid's float32 values; training makes the copy (once per

@@ -397,7 +397,7 @@ def rank_pairs(
     b = compiled.array(bary.to(torch.float32))
     loc = compiled.array(local)
     dd = compiled.array(d2.to(torch.float32))
-    p, kk = loc.shape[0], max(evecs.shape[2], half.shape[2])
+    p, kk = loc.shape[0], evecs.shape[2]  # ranking_grid gives both the same (G, K)
     k_c = min(int(k_c), loc.shape[1])
     top = np.empty((p, k_c), np.int64)
     dots = np.empty((p, k_c, 4) if keep else (p, 0, 4), np.float32)
