@@ -143,6 +143,35 @@ def test_chunked_memory_is_bounded(spectra, kernelset):
     assert auto.chunk_points == (1 << 20) // auto.bytes_per_point()
 
 
+def test_mesh_tables_take_larger_chunks(spectra, kernelset, monkeypatch):
+    """Once whole-mesh tables answer through the compiled blend, a call runs in chunks of
+    ``TABLE_CHUNK_POINTS`` (within the memory budget at ``TABLE_BYTES_PER_POINT``), not the
+    per-point path's, so the blend's threads get whole chunks; a chosen ``chunk_points``
+    stays as chosen. Colours are the same either way."""
+    from hktex_engine.kernels import fused_blend
+    from hktex_engine.kernels import query as query_mod
+
+    monkeypatch.setattr(query_mod, "TABLE_CHUNK_POINTS", 700)
+    face_ids, bary = random_points(spectra, 2000, seed=21)
+    auto = AlbedoQuery(spectra, kernelset, device="cpu", memory_budget=1 << 20)
+    chosen = AlbedoQuery(spectra, kernelset, device="cpu", chunk_points=64)
+    assert auto.chunk_points < 700
+    sizes = {}
+    for name, q in (("auto", auto), ("chosen", chosen)):
+        seen = []
+        real = q.model.albedo
+        monkeypatch.setattr(q.model, "albedo", lambda f, b, real=real, seen=seen: seen.append(len(f)) or real(f, b))  # fmt: skip
+        sizes[name] = (q.colors(face_ids, bary), seen)
+    compiled = fused_blend.available(torch.device("cpu"), auto.field.dtype)
+    assert auto.model.blends_from_mesh_tables() == compiled
+    expect = 700 if compiled else auto.chunk_points
+    assert max(sizes["auto"][1]) == expect
+    assert max(sizes["chosen"][1]) == 64
+    np.testing.assert_allclose(sizes["auto"][0], sizes["chosen"][0], atol=1e-6)
+    small = AlbedoQuery(spectra, kernelset, device="cpu", memory_budget=128 * 300)
+    assert small._table_chunk == 300
+
+
 def test_cli_query(tmp_path, spectra, kernelset, query, capsys):
     import json
 

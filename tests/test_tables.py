@@ -120,3 +120,75 @@ def test_whole_mesh_tables_equal_the_per_point_path(spectra3, dense_points, monk
         got, aux = model.albedo(f, b, return_aux=True)
     np.testing.assert_allclose(got.numpy(), ref.numpy(), atol=1e-12)
     assert torch.equal(aux["indices"], aux_ref["indices"])
+
+
+def _clones(kp: dict, copies: int) -> dict:
+    """``kp`` with its first ``copies`` kernels appended again (exact clones: the tie rule's
+    case that needs bit-equal distances and responses)."""
+    return {k: np.concatenate([v, v[:copies]]) if k != "base_color" else v for k, v in kp.items()}
+
+
+@pytest.mark.parametrize("grid", ["float32", "float16"])
+def test_compiled_tables_against_brute_force(spectra3, grid, monkeypatch):
+    """The compiled builders (CPU float32, kernels.fused_tables) against independent numpy:
+    each vertex list is exactly the centres within D_v + 2 R_v (D_v: the K_s-th nearest
+    distance by a full sort; R_v: the longest embedding edge at v), ascending, with their
+    squared distances; each response is sum_c w_c coef . phi(v)[node_c] on the grid's values
+    (float16 read in place); clones get bit-equal entries. The float16 case also starts the
+    lists one slot per K_s wide, so most are gathered again at their length."""
+    import dataclasses
+
+    from hktex_engine.kernels import fused_tables
+
+    spectra = spectra3
+    if grid == "float16":
+        monkeypatch.setattr(fused_tables, "LIST_SLOTS_PER_KS", 1)
+        spectra = dataclasses.replace(spectra3, evecs=np.asarray(spectra3.evecs, np.float16))
+    field = SpectralField(spectra, device="cpu", dtype=torch.float32)
+    kp = _clones(make_params(spectra, 300, seed=17), 20)
+    model = make_model(field, kp, CONFIG)
+    assert tables_mod._compiled(field, model.colors)
+    with torch.no_grad():
+        tables = model.prepare_tables()
+    assert getattr(field, "_evecs32", None) is None  # the float16 grid had no copy made
+    emb = field.embedding.numpy().astype(np.float64)
+    cen = model._centre_emb.numpy().astype(np.float64)
+    d2 = ((emb[:, None, :] - cen[None, :, :]) ** 2).sum(axis=2)  # (n, N) direct
+    edges = field.faces.numpy()[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    length = np.linalg.norm(emb[edges[:, 0]] - emb[edges[:, 1]], axis=1)
+    r_v = np.zeros(len(emb))
+    np.maximum.at(r_v, edges[:, 0], length)
+    np.maximum.at(r_v, edges[:, 1], length)
+    kth = np.sqrt(np.sort(d2, axis=1)[:, CONFIG.k_search - 1])
+    inside = d2 <= (kth + 2 * r_v)[:, None] ** 2
+    n_k = len(model)
+    kid = tables.kid.numpy()
+    for v in range(0, len(emb), 7):
+        row = kid[v][kid[v] < n_k]
+        expect = np.flatnonzero(inside[v])
+        # the same set, up to entries on the bound's round-off margin
+        assert set(expect) <= set(row) and len(row) - len(expect) <= 2
+        np.testing.assert_array_equal(row, np.sort(row))
+        np.testing.assert_allclose(tables.d2[v, : len(row)].numpy(), d2[v, row], atol=1e-12)
+    coef, _, nodes, weights, _ = (t.numpy() for t in model._terms)
+    evecs = field.evecs.numpy().astype(np.float32)
+    valid = kid < n_k
+    vv, ii = np.nonzero(valid)
+    j = kid[vv, ii]
+    rows = evecs[vv[:, None], nodes[j]]  # (pairs, 4, K)
+    direct = ((rows * weights[j][..., None]).sum(axis=1) * coef[j]).sum(axis=1)
+    np.testing.assert_allclose(tables.h.numpy()[vv, ii], direct, rtol=1e-5, atol=1e-6)
+    # clones: kernel j and j + 300 hold the same centre and shape, so the same values
+    first = kid[valid] < 20
+    clone_rows = {(a, b): i for a, b, i in zip(vv, j, ii, strict=True)}
+    for a, b in zip(vv[first], j[first], strict=True):
+        i, c = clone_rows[(a, b)], clone_rows[(a, b + 300)]
+        assert tables.h[a, i] == tables.h[a, c] and tables.d2[a, i] == tables.d2[a, c]
+    # the face lists: bit for bit those of the torch builder on the same vertex tables
+    faces = torch.arange(field.n_faces)
+    got = fused_tables.face_lists(field, tables, faces, CONFIG.k_search)
+    monkeypatch.setattr(tables_mod, "_compiled", lambda *a: False)
+    torch_ft = tables_mod.face_tables(field, tables, faces, CONFIG.k_search)
+    for name, value in zip(("kid", "h", "d2", "count"), (got[0], got[1], got[2], got[4]), strict=True):  # fmt: skip
+        assert torch.equal(value, getattr(torch_ft, name)), name
+    np.testing.assert_allclose(got[3].numpy(), torch_ft.edge2.numpy(), rtol=1e-14)

@@ -664,7 +664,7 @@ class HeatKernelModel(nn.Module):
             self._radius = star_radius(self.field)
         k_s = min(self.config.k_search, len(self))
         return build_tables(
-            self.field, verts, self._centre_emb, self._terms, k_s, self._radius, self._index()
+            self.field, verts, self._centre_emb, self._terms, k_s, self._radius, self._index
         )
 
     @torch.no_grad()
@@ -940,6 +940,15 @@ class HeatKernelModel(nn.Module):
             uniq = torch.arange(len(self), device=cand.device)
             return uniq, cand, self._spectral_terms(uniq, self._rows)
         return uniq, local, self._spectral_terms(uniq)
+
+    def blends_from_mesh_tables(self) -> bool:
+        """Whether no-grad queries of the current kernels blend compiled from whole-mesh face
+        tables (:meth:`prepare_tables`): then a point costs ~100 bytes of working memory,
+        not the per-point path's (``AlbedoQuery`` sizes its chunks by it)."""
+        key = self._version_key([self.bary, self.theta, self.s])
+        built = self._vtables is not None and self._vtables_full and self._vtables_key == key
+        compiled_blend = fused_blend.available(self.field.device, self.colors.dtype)
+        return built and self._ftables is not None and compiled_blend
 
     def ranks_compiled(self) -> bool:
         """Whether no-grad per-point queries rank through the compiled loop (CPU float32;

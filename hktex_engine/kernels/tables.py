@@ -30,9 +30,17 @@ Everything is torch on the field's device; no Python loop over points, kernels o
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
+
+from hktex_engine.kernels import fused_tables
+
+if TYPE_CHECKING:
+    from hktex_engine.kernels.knn import CandidateSearch
 
 #: Bytes of one chunk of the (vertices x centres) distance matrix.
 DISTANCE_CHUNK_BYTES = 64 * 2**20
@@ -84,20 +92,35 @@ def build_tables(
     terms: tuple[torch.Tensor, ...],
     k_s: int,
     radius: torch.Tensor,
-    search=None,
+    search: Callable[[], CandidateSearch] | None = None,
 ) -> VertexTables:
     """Tables for the unique vertices ``verts`` (sorted), from the model's per-kernel terms.
 
-    ``D_v`` needs only an upper bound: the largest exact distance to any ``K_s`` centres, so
-    the ``K_s`` found by ``search`` (a :class:`~hktex_engine.kernels.knn.CandidateSearch`,
-    approximate ranking is fine) serve; without one, a ``topk`` over the distance rows.
+    ``D_v`` needs only an upper bound: the largest exact distance to any ``K_s`` centres. The
+    compiled lists (CPU float32, ``kernels.fused_tables``) take the exact ``K_s`` nearest;
+    the torch lists take those found by ``search()`` (it returns a
+    :class:`~hktex_engine.kernels.knn.CandidateSearch`; approximate ranking is fine), or
+    without one a ``topk`` over the distance rows.
     """
     n_k = centres.shape[0]
     dev = centres.device
     emb = field.embedding.to(torch.float64)
     c64 = centres.to(torch.float64)
-    c_sq = (c64 * c64).sum(dim=1)
-    slack = 1e-12 * (float(c_sq.max()) + float((emb * emb).sum(dim=1).max()))
+    slack = 1e-12 * (float((c64 * c64).sum(dim=1).max()) + float((emb * emb).sum(dim=1).max()))
+    if _compiled(field, terms[0]) and centres.dtype == torch.float32:
+        kid, d2 = fused_tables.vertex_lists(field.embedding[verts], centres, k_s, radius[verts], slack)  # fmt: skip
+    else:
+        kid, d2 = _lists(emb, verts, c64, k_s, radius, slack, search)
+    h = _vertex_responses(field, verts, kid, terms)
+    rows = torch.full((field.n_vertices,), -1, dtype=torch.long, device=dev)
+    rows[verts] = torch.arange(verts.shape[0], device=dev)
+    return VertexTables(rows=rows, kid=kid, h=h, d2=d2, n_kernels=n_k)
+
+
+def _lists(emb, verts, c64, k_s, radius, slack, search) -> tuple[torch.Tensor, torch.Tensor]:
+    """The vertex lists of :func:`build_tables` by torch on any device: ``(kid, d2)``."""
+    n_k = c64.shape[0]
+    dev = c64.device
     # Distances: one float64 GEMM per chunk of vertices, |a|^2 + |c|^2 - 2 a.c (round-off
     # ~1e-16 of |a|^2 + |c|^2, covered by the slack), over the distinct centres only, so that
     # clones (equal centres) get bit-equal distances, as the tie rule needs (a GEMM's rounding
@@ -109,7 +132,8 @@ def build_tables(
     u_sq = (uniq * uniq).sum(dim=1)
     per_row = max(1, DISTANCE_CHUNK_BYTES // max(1, n_k * 8))
     if search is not None:
-        near = search.search(field.embedding[verts].to(centres.dtype), k_s)  # (V, k_s)
+        index = search()
+        near = index.search(emb[verts].to(index.centres.dtype), k_s)  # (V, k_s)
         reach_v = torch.empty(verts.shape[0], dtype=torch.float64, device=dev)
         step = max(1, DISTANCE_CHUNK_BYTES // max(1, k_s * emb.shape[1] * 8))
         for start in range(0, verts.shape[0], step):
@@ -143,10 +167,7 @@ def build_tables(
     kid[rr, slot] = cc
     d2 = torch.full(kid.shape, float("inf"), dtype=torch.float64, device=dev)
     d2[rr, slot] = torch.cat(vals)
-    h = _vertex_responses(field, verts, kid, terms)
-    rows = torch.full((field.n_vertices,), -1, dtype=torch.long, device=dev)
-    rows[verts] = torch.arange(verts.shape[0], device=dev)
-    return VertexTables(rows=rows, kid=kid, h=h, d2=d2, n_kernels=n_k)
+    return kid, d2
 
 
 def _vertex_responses(field, verts, kid, terms) -> torch.Tensor:
@@ -161,6 +182,8 @@ def _vertex_responses(field, verts, kid, terms) -> torch.Tensor:
     ``4 |union| / L`` instead of ``G`` products per pair.
     """
     coef, _, nodes, weights, _ = terms
+    if _compiled(field, coef):
+        return fused_tables.vertex_responses(field, verts, kid, terms)
     v_n, width = kid.shape
     n_k, k = coef.shape
     g_n = field.n_nodes
@@ -224,6 +247,13 @@ def _vertex_responses(field, verts, kid, terms) -> torch.Tensor:
     return torch.where(valid, out, torch.zeros_like(out))
 
 
+def _compiled(field, coef: torch.Tensor) -> bool:
+    """Whether the compiled builders (``kernels.fused_tables``) answer: CPU float32 terms on
+    a float32 or float16 grid."""
+    grid = field.evecs.dtype in (torch.float32, torch.float16)
+    return grid and fused_tables.available(coef.device, coef.dtype)
+
+
 def _add_corners(
     values: torch.Tensor, entry: torch.Tensor, corner: torch.Tensor, terms: torch.Tensor
 ) -> None:
@@ -267,6 +297,8 @@ class FaceTables:
 def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> FaceTables:
     """Tables for the unique faces ``faces``: candidates in all three vertex lists and within
     the face's own bound (see the comment below)."""
+    if _compiled(field, tables.h):
+        return _face_tables_compiled(field, tables, faces, k_s)
     tri = field.faces[faces]  # (F, 3)
     rows = tables.rows[tri]  # (F, 3)
     n_k = tables.n_kernels
@@ -320,10 +352,28 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     return FaceTables(rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=n_k, count=counts)
 
 
+def _face_tables_compiled(
+    field, tables: VertexTables, faces: torch.Tensor, k_s: int, max_bytes: float = math.inf
+) -> FaceTables | None:
+    """:func:`face_tables` by ``kernels.fused_tables`` (None above ``max_bytes``)."""
+    lists = fused_tables.face_lists(field, tables, faces, k_s, max_bytes)
+    if lists is None:
+        return None
+    kid, h, d2, edge2, count = lists
+    face_rows = torch.full((field.n_faces,), -1, dtype=torch.long)
+    face_rows[faces] = torch.arange(faces.shape[0])
+    return FaceTables(
+        rows=face_rows, kid=kid, h=h, d2=d2, edge2=edge2, n_kernels=tables.n_kernels, count=count
+    )
+
+
 def all_face_tables(
     field, tables: VertexTables, k_s: int, max_bytes: int, chunk: int = 4096
 ) -> FaceTables | None:
     """Face tables of every face (built in chunks of faces), or None above ``max_bytes``."""
+    if _compiled(field, tables.h):
+        faces = torch.arange(field.n_faces, device=field.faces.device)
+        return _face_tables_compiled(field, tables, faces, k_s, max_bytes)
     parts = []
     total = 0
     for start in range(0, field.n_faces, chunk):
