@@ -22,34 +22,23 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
-import scipy.sparse as sp
-from threadpoolctl import threadpool_limits
 
 from hktex_engine.config import SpectralConfig
 from hktex_engine.errors import SpectraError
-from hktex_engine.geometry.mesh import Mesh
-from hktex_engine.geometry.operators import (
-    AlboAssembler,
-    cotangent_stiffness,
-    lumped_mass,
-    reference_tangent_field,
-)
 from hktex_engine.progress import NullProgress, Progress, check_cancel
-from hktex_engine.spectra import triangular
-from hktex_engine.spectra.alignment import align_basis
-from hktex_engine.spectra.eigensolver import (
-    BLOCK_TOL,
-    GRID_TOL,
-    NODE_SOLVERS,
-    SolveInfo,
-    eigs_sliced,
-    eigs_warm,
-    estimate_lambda_k,
-    solve_node_timed,
-)
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+    from hktex_engine.geometry.mesh import Mesh
+
+# The solver stack (scipy, the mesh operators, the eigensolvers, the alignment) is imported by
+# the functions that build a grid, not here: every query, render and service worker reads a
+# spectra directory through this module, and those imports cost ~0.27 s of a one-off
+# ``hktex query`` (measured with ``python -X importtime``).
 
 
 @dataclass
@@ -282,6 +271,11 @@ def _cold_solutions(
     :func:`worker_context` says. From :data:`PRELOAD_MIN_N` vertices the compiled triangular
     solves are loaded first: here, so forked workers inherit them, or in each spawned worker.
     """
+    from threadpoolctl import threadpool_limits
+
+    from hktex_engine.spectra import triangular
+    from hktex_engine.spectra.eigensolver import solve_node_timed
+
     preload = len(mass) >= PRELOAD_MIN_N
     if workers <= 1:
         if preload:
@@ -376,6 +370,23 @@ def compute_spectra(
     (``theta = pi`` is ``theta = 0``; ``eta = 0`` is isotropic) are never solved twice.
     Alignment is always sequential along the chain of ALGORITHM.md section 3.
     """
+    from hktex_engine.geometry.operators import (
+        AlboAssembler,
+        cotangent_stiffness,
+        lumped_mass,
+        reference_tangent_field,
+    )
+    from hktex_engine.spectra.alignment import align_basis
+    from hktex_engine.spectra.eigensolver import (
+        BLOCK_TOL,
+        GRID_TOL,
+        NODE_SOLVERS,
+        SolveInfo,
+        eigs_sliced,
+        eigs_warm,
+        estimate_lambda_k,
+    )
+
     config = config or SpectralConfig()
     progress = progress or NullProgress()
     if solver not in ("auto", "block", "cold", "warm"):
