@@ -80,11 +80,13 @@ KNN_MARGIN = 8
 TABLE_PATH = "auto"
 TABLE_POINTS_PER_VERTEX = 2.0
 #: The same when the per-point path ranks compiled (CPU float32, ``kernels.fused_rank``,
-#: float16 grids read in place): ~7-12 us a point against ~160 us a vertex for a batch's own
-#: tables, so tables pay from ~25-30 points per distinct vertex (measured 2026-12-06, 8,192-
-#: vertex torus, 10,000 kernels, two threads: per-point faster at 22.7 per vertex, 0.177
-#: against 0.211 s; docs/kernels.md, "Sparse queries on float16 grids").
-TABLE_POINTS_PER_VERTEX_COMPILED = 32.0
+#: float16 grids read in place). Since the tables are built compiled too
+#: (``kernels.fused_tables``) a batch's own cost ~35 us a vertex against ~12 us a point on
+#: the per-point path, so they pay from ~3-5 points per distinct vertex (measured
+#: 2026-12-06, 8,192-vertex torus, 10,000 kernels, points on a strip of faces, one call:
+#: per-point faster at 2.2 per vertex, 0.031 against 0.037 s; tables at 6.1, 0.023 against
+#: 0.028, and at 34, 0.085 against 0.258; docs/kernels.md, "Candidate tables, compiled").
+TABLE_POINTS_PER_VERTEX_COMPILED = 4.0
 #: Largest whole-mesh candidate tables :meth:`HeatKernelModel.prepare_tables` keeps.
 TABLES_MAX_BYTES = 1024 * 2**20
 #: Relative round-off of the index's distances (float32 ``|q|^2 + |c|^2 - 2 q.c``) against
