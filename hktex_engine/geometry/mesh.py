@@ -35,6 +35,8 @@ from hktex_engine.errors import (
 if TYPE_CHECKING:
     import trimesh
 
+    from hktex_engine.geometry.atlas import Appearance
+
 
 @dataclass
 class Mesh:
@@ -126,11 +128,13 @@ def load_mesh(
         raise FileNotFoundError(f"mesh file not found: {path}")
     kind = _detect_format(path, file_type)
     limit = RAW_ELEMENT_FACTOR * max_vertices
+    # An explicit texture replaces the file's materials, so they are not read (nor packed).
+    own_texture = read_texture and texture is None
     if kind == "obj":
-        raw = _read_obj(path, limit, read_texture)
+        raw = _read_obj(path, limit, own_texture)
     else:
         _precheck_counts(path, kind, limit)
-        raw = _read_with_trimesh(path, kind, read_texture)
+        raw = _read_with_trimesh(path, kind, own_texture)
     tex = load_texture(texture) if texture is not None else raw.texture
     return _build_mesh(
         raw.positions, raw.faces, raw.corner_uvs, tex, max_vertices, source_name=path.name
@@ -235,7 +239,11 @@ def _read_obj(path: Path, limit: int, read_texture: bool = True) -> _RawMesh:
         pos, faces, corner_uvs = fast
     else:
         pos, faces, corner_uvs = _parse_obj_lines(path, lines)
-    texture = _obj_material_texture(path, mtllibs, materials_used) if read_texture else None
+    texture = None
+    if read_texture and len(set(materials_used)) > 1:
+        texture, corner_uvs = _obj_materials_texture(path, lines, mtllibs, corner_uvs)
+    elif read_texture:
+        texture = _obj_material_texture(path, mtllibs, materials_used)
     return _RawMesh(pos, faces, corner_uvs, texture)
 
 
@@ -401,25 +409,134 @@ def _obj_material_texture(
         mtl_path = _inside_folder(path.parent, lib, "mtllib")
         if not mtl_path.is_file():
             continue
-        current = None
-        maps: dict[str | None, str] = {}
-        for line in mtl_path.read_text(errors="replace").splitlines():
-            tokens = line.strip().split()
-            if not tokens:
-                continue
-            if tokens[0] == "newmtl" and len(tokens) > 1:
-                current = tokens[1]
-            elif tokens[0] == "map_Kd" and len(tokens) > 1:
-                # Options (-s, -o, ...) precede the file name, which is the last token.
-                maps.setdefault(current, tokens[-1])
+        maps = {name: m for name, (m, _) in _mtl_statements(mtl_path).items() if m is not None}
         if not maps:
             continue
         name = next((m for m in materials_used if m in maps), next(iter(maps)))
-        image = _inside_folder(path.parent, str(mtl_path.parent / maps[name]), "map_Kd")
-        if not image.is_file():
-            raise TextureError(f"{mtl_path.name}: map_Kd {maps[name]!r} not found")
-        return load_texture(image)
+        return load_texture(_map_file(path, mtl_path, maps[name]))
     return None
+
+
+def _mtl_statements(mtl_path: Path) -> dict[str, tuple[str | None, tuple | None]]:
+    """Each ``newmtl`` of an MTL file: its diffuse map's file name and its ``Kd`` colour."""
+    current = None
+    out: dict = {}
+    for line in mtl_path.read_text(errors="replace").splitlines():
+        tokens = line.strip().split()
+        if not tokens:
+            continue
+        if tokens[0] == "newmtl" and len(tokens) > 1:
+            current = tokens[1]
+            out.setdefault(current, (None, None))
+        elif current is not None and tokens[0] == "map_Kd" and len(tokens) > 1:
+            if out[current][0] is None:
+                out[current] = (_map_name(tokens[1:]), out[current][1])
+        elif current is not None and tokens[0] == "Kd" and len(tokens) >= 4:
+            try:
+                kd = tuple(float(t) for t in tokens[1:4])
+            except ValueError:
+                raise TextureError(f"{mtl_path.name}: Kd {' '.join(tokens[1:4])!r}") from None
+            if not all(np.isfinite(kd)):
+                raise TextureError(f"{mtl_path.name}: Kd of {current!r} is not finite")
+            out[current] = (out[current][0], tuple(min(max(c, 0.0), 1.0) for c in kd))
+    return out
+
+
+#: Arguments each MTL map option takes (Wavefront's MTL specification; -o, -s and -t take one
+#: to three numbers). The file name is what follows the options, spaces included, as Blender
+#: and others write it.
+_MAP_OPTIONS = {
+    **dict.fromkeys(("-blendu", "-blendv", "-bm", "-boost", "-cc", "-clamp"), 1),
+    **dict.fromkeys(("-imfchan", "-texres"), 1),
+    "-mm": 2,
+    **dict.fromkeys(("-o", "-s", "-t"), 3),
+}
+
+
+def _map_name(tokens: list[str]) -> str:
+    """The file name of a ``map_Kd`` statement's arguments, its options skipped."""
+    i = 0
+    while i < len(tokens) - 1 and tokens[i] in _MAP_OPTIONS:
+        most, i = _MAP_OPTIONS[tokens[i]], i + 1
+        for _ in range(most):
+            if i >= len(tokens) - 1 or (most == 3 and not _is_number(tokens[i])):
+                break
+            i += 1
+    return " ".join(tokens[i:])
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _map_file(path: Path, mtl_path: Path, name: str) -> Path:
+    image = _inside_folder(path.parent, str(mtl_path.parent / name), "map_Kd")
+    if not image.is_file():
+        raise TextureError(f"{mtl_path.name}: map_Kd {name!r} not found")
+    return image
+
+
+def _obj_materials_texture(
+    path: Path, lines: list[str], mtllibs: list[str], corner_uvs: np.ndarray | None
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Texture and UVs of an OBJ whose faces use several materials (one atlas when they differ).
+
+    A textured material's ``Kd`` is not applied (exporters write a placeholder there); a
+    material without ``map_Kd`` is its ``Kd`` colour, as stored. Faces of a material no MTL
+    defines are refused when the materials differ: no colour could be honestly assumed.
+    """
+    from hktex_engine.geometry.atlas import Appearance, one_texture
+
+    tri_material, names = _obj_triangle_materials(lines)
+    statements: dict = {}
+    for lib in mtllibs:
+        mtl_path = _inside_folder(path.parent, lib, "mtllib")
+        if mtl_path.is_file():
+            for name, (map_name, kd) in _mtl_statements(mtl_path).items():
+                statements.setdefault(name, (mtl_path, map_name, kd))
+    appearances, images = [], {}
+    for name in names:
+        mtl_path, map_name, kd = statements.get(name, (None, None, None))
+        if map_name is not None:
+            file = _map_file(path, mtl_path, map_name)
+            if file not in images:
+                images[file] = load_texture(file)
+            appearances.append(Appearance(("map", str(file)), image=images[file], name=name))
+        else:
+            appearances.append(Appearance(("kd", kd), colour=kd, name=name))
+    keys = {appearances[i].key for i in np.unique(tri_material) if i >= 0}
+    if len(keys) == 1:  # several names, one appearance: read as a single material
+        texture = next(a.image for a in appearances if a.key in keys)
+        return texture, corner_uvs
+    unknown = sorted({a.name for a in appearances if a.image is None and a.colour is None})
+    if np.any(tri_material < 0) or unknown:
+        raise TextureError(
+            f"{path.name}: faces use several materials, and some have no usemtl or one with "
+            f"neither map_Kd nor Kd {unknown}; their colour is unknown"
+        )
+    uvs = corner_uvs
+    if uvs is None:
+        uvs = np.full((len(tri_material), 3, 2), np.nan)
+    return one_texture(appearances, tri_material, uvs)
+
+
+def _obj_triangle_materials(lines: list[str]) -> tuple[np.ndarray, list[str]]:
+    """Per triangle (in the parsers' fan order), the index into the ``usemtl`` names in force,
+    -1 before the first; and those names in order of first use."""
+    index: dict[str, int] = {}
+    current, per_face, counts = -1, [], []
+    for line in lines:
+        tokens = line.split("#", 1)[0].split()
+        if len(tokens) > 1 and tokens[0] == "usemtl":
+            current = index.setdefault(tokens[1], len(index))
+        elif tokens and tokens[0] == "f":
+            per_face.append(current)
+            counts.append(len(tokens) - 3)
+    return np.repeat(np.asarray(per_face, dtype=np.int64), counts), list(index)
 
 
 def _inside_folder(folder: Path, reference: str, what: str) -> Path:
@@ -534,7 +651,7 @@ def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _Raw
         geometries = []
     if not geometries:
         raise UnreadableMeshError(f"{path.name}: no triangle mesh found in the {kind.upper()} file")
-    positions, faces, uv_parts, textures = [], [], [], []
+    positions, faces, uv_parts, appearances = [], [], [], []
     image_cache: dict[int, np.ndarray] = {}
     offset = 0
     for g in geometries:
@@ -549,19 +666,25 @@ def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _Raw
         offset += len(v)
         uv = getattr(g.visual, "uv", None)
         uv_parts.append(
-            None if uv is None or len(uv) != len(v) else np.asarray(uv, dtype=np.float64)[f]
+            np.full((len(f), 3, 2), np.nan)
+            if uv is None or len(uv) != len(v)
+            else np.asarray(uv, dtype=np.float64)[f].reshape(-1, 3, 2)
         )
-        textures.append(_trimesh_texture(g, image_cache) if read_texture else None)
-    corner_uvs = None
-    if all(u is not None for u in uv_parts):
-        corner_uvs = np.concatenate(uv_parts, axis=0).reshape(-1, 3, 2)
-    # One texture for the whole mesh: several materials would need an atlas we do not build.
-    # Instances of one geometry carry copies of its image, so compare contents, not objects.
+        if read_texture:
+            appearances.append(_trimesh_appearance(g, image_cache))
+    corner_uvs = np.concatenate(uv_parts, axis=0)
     texture = None
-    if textures and all(t is not None for t in textures):
-        distinct = {id(t): t for t in textures}
-        if len({texture_hash(t) for t in distinct.values()}) == 1:
-            texture = textures[0]
+    if read_texture:
+        from hktex_engine.geometry.atlas import one_texture
+
+        # Instances of one geometry carry equal appearances: one tile serves them all.
+        keys = list(dict.fromkeys(a.key for a in appearances))
+        distinct = [next(a for a in appearances if a.key == k) for k in keys]
+        per_face = np.repeat([keys.index(a.key) for a in appearances], [len(f) for f in faces])
+        texture, atlas_uvs = one_texture(distinct, per_face, corner_uvs)
+        corner_uvs = atlas_uvs if texture is not None else corner_uvs
+    if not np.all(np.isfinite(corner_uvs)):
+        corner_uvs = None
     return _RawMesh(np.concatenate(positions), np.concatenate(faces), corner_uvs, texture)
 
 
@@ -581,20 +704,27 @@ def _scene_meshes(scene: trimesh.Scene) -> list[trimesh.Trimesh]:
     return out
 
 
-def _trimesh_texture(geom: trimesh.Trimesh, cache: dict[int, np.ndarray]) -> np.ndarray | None:
-    """The base-colour image of a geometry's material; ``cache`` (per load) converts each once."""
+def _trimesh_appearance(geom: trimesh.Trimesh, cache: dict[int, np.ndarray]) -> Appearance:
+    """A geometry's base colour: its material's image times ``baseColorFactor``, or the factor
+    alone (glTF's default material is white); ``cache`` (per load) converts each image once."""
+    from hktex_engine.geometry.atlas import Appearance, linear_to_srgb
+
     material = getattr(geom.visual, "material", None)
-    if material is None:
-        return None
     image = getattr(material, "baseColorTexture", None)
     if image is None:
         image = getattr(material, "image", None)
+    factor = getattr(material, "baseColorFactor", None)
+    rgb = (1.0, 1.0, 1.0) if factor is None else tuple(float(c) / 255.0 for c in factor[:3])
+    name = str(getattr(material, "name", "") or "")
     if image is None:
-        return None
+        colour = tuple(float(c) for c in linear_to_srgb(np.asarray(rgb)))
+        return Appearance(("colour", colour), colour=colour, name=name)
     key = id(image)  # the image stays referenced by ``geom`` for the whole load
     if key not in cache:
         cache[key] = load_texture(np.asarray(image.convert("RGB")))
-    return cache[key]
+    return Appearance(
+        ("image", texture_hash(cache[key]), rgb), image=cache[key], factor=rgb, name=name
+    )
 
 
 # ---------------------------------------------------------------------------------------------
