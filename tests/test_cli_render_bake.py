@@ -96,3 +96,24 @@ def test_cli_bake(files, capsys):
         line for line in (root / "v.obj").read_text().splitlines() if line.startswith("v ")
     )
     assert len(first_v.split()) == 7  # x y z r g b
+
+
+@pytest.mark.parametrize("command", ["bake", "fit", "spectra"])
+def test_cli_max_vertices_is_one_option_everywhere(files, capsys, command):
+    """Every command that reads a mesh file takes the same limit: below the mesh's vertex
+    count it refuses in one line (the default admits it: test_cli_bake and the fits)."""
+    from hktex_engine.cli import main
+    from hktex_engine.geometry.mesh import load_mesh
+
+    root, obj, sdir, hkt = files
+    n = load_mesh(obj).n_vertices
+    argv = {
+        "bake": ["bake", str(hkt), "--spectra", str(sdir), "--mesh", str(obj)],
+        "fit": ["fit", str(obj), "--spectra", str(sdir), "--steps", "2", "--kernels", "20"],
+        "spectra": ["spectra", str(obj)],
+    }[command]
+    out = root / f"limit.{command}"
+    assert main([*argv, "-o", str(out), "--max-vertices", str(n - 1)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"exceeds the limit of {n - 1}" in err
+    assert not out.exists()

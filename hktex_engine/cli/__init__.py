@@ -56,6 +56,19 @@ class TerminalProgress:
             self._bar = None
 
 
+def add_max_vertices(parser: argparse.ArgumentParser) -> None:
+    """``--max-vertices``, the same on every command that reads a mesh file, so a mesh the
+    spectra were made for can also be fitted and baked."""
+    from hktex_engine.geometry.mesh import DEFAULT_MAX_VERTICES
+
+    parser.add_argument(
+        "--max-vertices",
+        type=int,
+        default=DEFAULT_MAX_VERTICES,
+        help=f"refuse meshes with more vertices after merging ({DEFAULT_MAX_VERTICES:,})",
+    )
+
+
 def load_kernelset_with_spectra(kernels: Path, spectra_dir: Path) -> tuple[Spectra, KernelSet]:
     """The spectra and a kernel set checked to belong to them (same mesh, same grid): where
     ``render``, ``bake`` and ``query`` all start."""

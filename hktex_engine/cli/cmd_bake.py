@@ -6,6 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
+from hktex_engine.cli import add_max_vertices
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -27,6 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the GLB / OBJ carry per-vertex colours instead of the texture",
     )
     p.add_argument("--device", default=None, help="torch device for the albedo queries")
+    add_max_vertices(p)
     p.set_defaults(func=run)
 
 
@@ -44,7 +47,7 @@ def run(args: argparse.Namespace) -> dict:
     )
 
     spectra, kernelset = load_kernelset_with_spectra(args.kernels, args.spectra)
-    mesh = load_mesh(args.mesh)
+    mesh = load_mesh(args.mesh, max_vertices=args.max_vertices)
     progress = TerminalProgress("bake")
     start = time.perf_counter()
     try:

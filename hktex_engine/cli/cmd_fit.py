@@ -7,6 +7,7 @@ import os
 import time
 from pathlib import Path
 
+from hktex_engine.cli import add_max_vertices
 from hktex_engine.config import (
     COLOURS,
     DEFAULT_PRESET,
@@ -101,6 +102,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint-dir", type=Path, help="resumable fit: checkpoints go here")
     p.add_argument("--eval-points", type=int, default=60_000, help="surface-PSNR sample count")
     p.add_argument("--device", default=None, help="torch device (default: cuda if present)")
+    add_max_vertices(p)
     p.add_argument("--angles", type=int, default=s.angles, help="spectra: angle nodes")
     p.add_argument(
         "--anisotropies", type=_floats, default=s.anisotropies, help="spectra: eta nodes, a,b,c"
@@ -155,7 +157,7 @@ def run(args: argparse.Namespace) -> dict:
     if not args.output.parent.is_dir():
         raise FileNotFoundError(f"output directory does not exist: {args.output.parent}")
     t0 = time.perf_counter()
-    mesh = load_mesh(args.mesh, texture=args.texture)
+    mesh = load_mesh(args.mesh, texture=args.texture, max_vertices=args.max_vertices)
     if args.spectra is not None:
         spectra = load_spectra(args.spectra, expect_mesh_hash=mesh.content_hash)
     else:

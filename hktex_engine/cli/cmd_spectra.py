@@ -6,6 +6,7 @@ import argparse
 import time
 from pathlib import Path
 
+from hktex_engine.cli import add_max_vertices
 from hktex_engine.config import SpectralConfig
 from hktex_engine.spectra.cores import cpu_sample
 
@@ -78,7 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="auto",
         help="processes for independent node solves; 'auto' (default): the free cores",
     )
-    p.add_argument("--max-vertices", type=int, default=60000, help="refuse bigger meshes")
+    add_max_vertices(p)
     # the free cores are sampled from here, before the heavy imports and the mesh load, so
     # the window auto_workers needs is time the command spends anyway
     p.set_defaults(func=run, cpu_since=cpu_sample())

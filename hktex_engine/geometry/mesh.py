@@ -80,6 +80,10 @@ class Mesh:
 # Loading
 # ---------------------------------------------------------------------------------------------
 
+#: The largest mesh (vertices after merging) a caller accepts unless it says otherwise: the
+#: default grid's spectra of 60,000 vertices take ~1 GB and a few minutes on two cores.
+DEFAULT_MAX_VERTICES = 60_000
+
 #: Bumped whenever the canonical geometry behind :attr:`Mesh.content_hash` changes meaning.
 HASH_VERSION = "hktex-mesh-v1"
 
@@ -110,7 +114,7 @@ class _RawMesh:
 def load_mesh(
     path: str | os.PathLike,
     texture: TextureSource = None,
-    max_vertices: int = 60000,
+    max_vertices: int = DEFAULT_MAX_VERTICES,
     file_type: str | None = None,
     read_texture: bool = True,
 ) -> Mesh:
@@ -146,7 +150,7 @@ def mesh_from_arrays(
     faces: np.ndarray,
     corner_uvs: np.ndarray | None = None,
     texture: TextureSource = None,
-    max_vertices: int = 60000,
+    max_vertices: int = DEFAULT_MAX_VERTICES,
     source_name: str = "",
 ) -> Mesh:
     """Validate and normalise in-memory arrays exactly as :func:`load_mesh` does a file."""
