@@ -121,3 +121,29 @@ def test_vertex_colors_and_mesh_mismatch(setup):
     other = type(mesh)(**{**mesh.__dict__, "content_hash": "x"})
     with pytest.raises(SpectraError):
         bake_texture(spectra, ks, other, resolution=16)
+
+
+@pytest.mark.parametrize("layout", ["tiling", "overlapping"])
+def test_uvs_a_texture_cannot_hold_bake_on_a_fresh_atlas(setup, layout):
+    """Tiled or overlapping UVs would give faces of different colours the same texels: the
+    bake takes its own layout, says why, and still reads back as the query."""
+    from hktex_engine.geometry.mesh import mesh_from_arrays
+    from hktex_engine.render.bake import bake_texture, layout_problem, rasterize_uv
+
+    mesh, spectra, ks = setup
+    uv = np.array(mesh.corner_uvs)
+    assert layout_problem(uv, rasterize_uv(uv, 160, 160)[0]) == ""  # the demo's own atlas
+    if layout == "tiling":
+        uv[::2] += 1.0  # the same texels under wrapping, outside [0, 1]
+    else:
+        uv[1::2] = uv[::2][: len(uv[1::2])]  # every odd face on an even face's texels
+    V = mesh.to_file_units(mesh.vertices)
+    moved = mesh_from_arrays(V, mesh.faces, uv, mesh.texture)
+    assert moved.content_hash == mesh.content_hash
+    bake = bake_texture(spectra, ks, moved, resolution=160)
+    assert bake.atlas == "xatlas"
+    assert "overlap or leave [0, 1]" in bake.atlas_reason
+    err = _baked_vs_query(bake.corner_uvs, bake.texture, spectra, ks)
+    assert np.median(err) < 0.015
+    # read on the mesh's own (bad) UVs the same texture would be wrong on many points
+    assert np.median(_baked_vs_query(uv, bake.texture, spectra, ks)) > 3 * np.median(err)

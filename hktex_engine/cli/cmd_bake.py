@@ -75,6 +75,7 @@ def run(args: argparse.Namespace) -> dict:
         "files": written,
         "resolution": args.resolution,
         "atlas": bake.atlas,
+        "atlas_reason": bake.atlas_reason,
         "coverage": round(bake.coverage, 4),
         "seconds": round(seconds, 3),
         "message": f"wrote {', '.join(written)} ({seconds:.1f} s)",

@@ -22,6 +22,11 @@ from hktex_engine.progress import Progress, check_cancel
 #: Candidate (face, texel) pairs tested per chunk while rasterising (bounds memory).
 RASTER_CHUNK = 4_000_000
 
+#: The mesh's UV islands count as overlapping when the texels they cover are fewer than this
+#: fraction of their summed area in texels (texel centres inside a triangle number its area
+#: on average, so a proper layout sits near 1 and mirrored halves near 0.5).
+MIN_DISTINCT_COVER = 0.9
+
 
 @dataclass
 class Bake:
@@ -31,6 +36,7 @@ class Bake:
     corner_uvs: np.ndarray  # (m, 3, 2)
     coverage: float  # fraction of texels covered by a triangle before padding
     atlas: str  # "mesh" (the mesh's own UVs) or "xatlas"
+    atlas_reason: str = ""  # why the mesh's own UVs were not used, when they were not
 
 
 def rasterize_uv(corner_uvs: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -89,6 +95,24 @@ def rasterize_uv(corner_uvs: np.ndarray, width: int, height: int) -> tuple[np.nd
     return face_img, bary_img
 
 
+def layout_problem(corner_uvs: np.ndarray, face_img: np.ndarray) -> str:
+    """Why a mesh's UVs cannot hold a baked texture ("" when they can): islands that overlap
+    (mirrored halves, stacked copies) or lie outside [0, 1] (a tiling layout) leave the
+    texels they cover well short of their area. Real layouts that poke a little past the
+    square's edge (spot's reach -0.05) pass: the rule is on area, not on extremes."""
+    uv = np.asarray(corner_uvs, dtype=np.float64)
+    h, w = face_img.shape
+    e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    area = 0.5 * float(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]).sum()) * w * h
+    covered = int((face_img >= 0).sum())
+    if covered < MIN_DISTINCT_COVER * area:
+        return (
+            "the mesh's UV islands overlap or leave [0, 1] (distinct texels "
+            f"{covered / area:.0%} of their area)"
+        )
+    return ""
+
+
 def pad_texture(texture: np.ndarray, covered: np.ndarray) -> np.ndarray:
     """Fill every empty texel with its nearest covered texel's colour (edge padding).
 
@@ -135,12 +159,17 @@ def bake_texture(
     faces = np.asarray(spectra.faces, dtype=np.int64)
     if mesh is not None and mesh.content_hash != spectra.mesh_hash:
         raise SpectraError("the spectra were computed for another mesh than the one to bake")
+    reason = "the mesh has no UVs"
     if mesh is not None and mesh.corner_uvs is not None:
         corner_uvs, atlas = np.asarray(mesh.corner_uvs, np.float64), "mesh"
-    else:
+        face_img, bary_img = rasterize_uv(corner_uvs, resolution, resolution)
+        reason = layout_problem(corner_uvs, face_img)
+    if reason:
+        # A texture holds one colour per texel: tiling or overlapping UVs would give faces
+        # with different kernel colours the same texels, so the bake gets its own layout.
         corner_uvs, atlas = xatlas_uvs(spectra.vertices, faces), "xatlas"
-    check_cancel(progress)
-    face_img, bary_img = rasterize_uv(corner_uvs, resolution, resolution)
+        check_cancel(progress)
+        face_img, bary_img = rasterize_uv(corner_uvs, resolution, resolution)
     covered = face_img >= 0
     if not covered.any():
         raise TextureError("no texel is covered by a triangle: are the UVs inside [0, 1]?")
@@ -155,6 +184,7 @@ def bake_texture(
         corner_uvs=corner_uvs,
         coverage=float(covered.mean()),
         atlas=atlas,
+        atlas_reason="" if atlas == "mesh" else reason,
     )
 
 
