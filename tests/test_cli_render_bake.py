@@ -116,4 +116,5 @@ def test_cli_max_vertices_is_one_option_everywhere(files, capsys, command):
     assert main([*argv, "-o", str(out), "--max-vertices", str(n - 1)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and f"exceeds the limit of {n - 1}" in err
+    assert err.endswith("(raise it with --max-vertices)")
     assert not out.exists()

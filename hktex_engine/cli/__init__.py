@@ -19,7 +19,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hktex_engine.errors import HKTexError
+from hktex_engine.errors import HKTexError, TooManyVerticesError
 
 if TYPE_CHECKING:
     from hktex_engine.kernels.model import KernelSet
@@ -111,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         summary = args.func(args)
     except (HKTexError, FileNotFoundError, ValueError) as exc:
         message = " ".join(str(exc).split()) or type(exc).__name__
+        if isinstance(exc, TooManyVerticesError) and hasattr(args, "max_vertices"):
+            message += " (raise it with --max-vertices)"
         print(f"hktex {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
