@@ -249,3 +249,42 @@ def test_glb_with_several_primitives_and_base_colour_factors(tmp_path):
     np.testing.assert_allclose(got[first], want, atol=1e-5)
     plain = np.tile(linear_to_srgb(stored[1]), (int((~first).sum()), 1))
     np.testing.assert_allclose(got[~first], plain, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        ("texCoord", 1, "TEXCOORD_1"),
+        ("extensions", {"KHR_texture_transform": {"scale": [2, 2]}}, "KHR_texture_transform"),
+        ("no source", None, "extension-only"),
+    ],
+)
+def test_gltf_base_colour_this_reader_would_misread_is_refused(tmp_path, change):
+    """What trimesh would silently ignore (another UV set, a texture transform, a KTX2-only
+    texture) must stop the load with a message, not fit the wrong colours."""
+    import json
+
+    from trimesh.exchange.gltf import export_gltf
+
+    v, f = icosphere(1)
+    split_v = v[f].reshape(-1, 3)
+    uv = np.random.default_rng(8).uniform(0, 1, (len(split_v), 2))
+    image = Image.fromarray(np.zeros((4, 4, 3), np.uint8))
+    visual = trimesh.visual.TextureVisuals(uv=uv, image=image)
+    mesh = trimesh.Trimesh(split_v, np.arange(len(split_v)).reshape(-1, 3), visual=visual)
+    files = export_gltf(trimesh.Scene(mesh))
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    assert load_mesh(tmp_path / "model.gltf").has_texture  # as exported: readable
+    doc = json.loads(files["model.gltf"])
+    ref = doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]
+    key, value, message = change
+    if key == "no source":
+        doc["textures"][ref["index"]] = {"extensions": {"KHR_texture_basisu": {"source": 0}}}
+    else:
+        ref[key] = value
+    (tmp_path / "model.gltf").write_text(json.dumps(doc))
+    with pytest.raises(TextureError, match=message):
+        load_mesh(tmp_path / "model.gltf")
+    # geometry alone (what spectra read) does not depend on the texture
+    assert load_mesh(tmp_path / "model.gltf", read_texture=False).n_faces == len(f)

@@ -604,16 +604,42 @@ def _off_counts(path: Path) -> tuple[int, int]:
     return int(tokens[0]), int(tokens[1])
 
 
-def _gltf_counts(path: Path) -> tuple[int, int]:
+def _gltf_document(path: Path) -> dict:
+    """The JSON of a glTF file, or of a GLB's first chunk (at most 64 MB of it)."""
     with open(path, "rb") as fh:
         if fh.read(4) == b"glTF":
             fh.read(8)
             chunk_length = struct.unpack("<I", fh.read(4))[0]
             fh.read(4)
-            doc = json.loads(fh.read(min(chunk_length, 64 << 20)))
-        else:
-            fh.seek(0)
-            doc = json.loads(fh.read(64 << 20))
+            return json.loads(fh.read(min(chunk_length, 64 << 20)))
+        fh.seek(0)
+        return json.loads(fh.read(64 << 20))
+
+
+def _gltf_texture_problem(doc: dict) -> str:
+    """What in a glTF's base colour textures trimesh would silently get wrong ("" if nothing):
+    trimesh reads TEXCOORD_0 as stored, ignores ``KHR_texture_transform``, and decodes only
+    images PIL can open from a texture's ``source`` (KTX2/Basis textures come back empty,
+    which would read as the factor alone)."""
+    textures = doc.get("textures", [])
+    for i, material in enumerate(doc.get("materials", [])):
+        ref = material.get("pbrMetallicRoughness", {}).get("baseColorTexture")
+        if not isinstance(ref, dict):
+            continue
+        name = material.get("name", f"#{i}")
+        if ref.get("texCoord", 0) != 0:
+            return f"material {name!r} reads its base colour from TEXCOORD_{ref['texCoord']}"
+        if "KHR_texture_transform" in ref.get("extensions", {}):
+            return f"material {name!r} moves its base colour with KHR_texture_transform"
+        index = ref.get("index")
+        texture = textures[index] if isinstance(index, int) and index < len(textures) else {}
+        if "source" not in texture:
+            return f"material {name!r} has a base colour texture in an extension-only format"
+    return ""
+
+
+def _gltf_counts(path: Path) -> tuple[int, int]:
+    doc = _gltf_document(path)
     accessors = doc.get("accessors", [])
 
     def mesh_counts(mesh: dict) -> tuple[int, int]:
@@ -638,6 +664,16 @@ def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _Raw
     """
     import trimesh
 
+    if read_texture and kind in ("glb", "gltf"):
+        try:
+            problem = _gltf_texture_problem(_gltf_document(path))
+        except (OSError, ValueError, TypeError, AttributeError, struct.error):
+            problem = ""  # an unparsable document is trimesh's to reject, with its message
+        if problem:
+            raise TextureError(
+                f"{path.name}: {problem}, which this reader does not follow; bake the asset's "
+                "base colour to one texture on TEXCOORD_0 first"
+            )
     try:
         loaded = trimesh.load(str(path), file_type=kind, process=False)
     except (MemoryError, RecursionError):
