@@ -48,6 +48,25 @@ def _partial_path(dest: Path) -> Path:
     return dest.with_name(f".{dest.name}.part-{os.getpid()}")
 
 
+def _build_request(
+    http: httpx.Client | httpx.AsyncClient, call: calls.Call, stack: contextlib.ExitStack
+) -> httpx.Request:
+    """The request of a route-table call, its upload files opened on ``stack`` (so they stay
+    open while the body streams and close with it); the same for both clients."""
+    files = {
+        name: (p.name, stack.enter_context(p.open("rb")), kind) for name, p, kind in call.uploads
+    }
+    return http.build_request(
+        call.method,
+        call.path,
+        params=call.params,
+        json=call.json,
+        content=call.content,
+        files=files or None,
+        headers=call.headers or None,
+    )
+
+
 def _final_from_event(event: ServerSentEvent) -> bool:
     """True when an event says its job reached a final state (the stream may end there)."""
     if event.event in ("end", "done", "close"):
@@ -118,19 +137,7 @@ class Client:
 
     def _run(self, call: calls.Call[T]) -> T:
         with contextlib.ExitStack() as stack:
-            files = {
-                name: (p.name, stack.enter_context(p.open("rb")), kind)
-                for name, p, kind in call.uploads
-            }
-            request = self._http.build_request(
-                call.method,
-                call.path,
-                params=call.params,
-                json=call.json,
-                content=call.content,
-                files=files or None,
-                headers=call.headers or None,
-            )
+            request = _build_request(self._http, call, stack)
             response = self._http.send(request, stream=call.stream_to is not None)
             try:
                 if call.stream_to is not None:
@@ -394,19 +401,7 @@ class AsyncClient:
 
     async def _run(self, call: calls.Call[T]) -> T:
         with contextlib.ExitStack() as stack:
-            files = {
-                name: (p.name, stack.enter_context(p.open("rb")), kind)
-                for name, p, kind in call.uploads
-            }
-            request = self._http.build_request(
-                call.method,
-                call.path,
-                params=call.params,
-                json=call.json,
-                content=call.content,
-                files=files or None,
-                headers=call.headers or None,
-            )
+            request = _build_request(self._http, call, stack)
             response = await self._http.send(request, stream=call.stream_to is not None)
             try:
                 if call.stream_to is not None:
