@@ -173,27 +173,34 @@ def test_save_refuses_invalid_and_is_atomic(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_compact_storage_changes_colours_little(tmp_path):
-    """Measured effect of float16 members on albedo, on real (tiny) spectra."""
-    from hktex_engine.kernels.query import AlbedoQuery
-    from tests.kernels_support import random_kernels, random_points, tiny_spectra
+def _random_set(sp, max_sharpness: float) -> KernelSet:
+    """200 random kernels on the tiny spectra, every attribute over its range."""
+    from tests.kernels_support import random_kernels
 
-    sp = tiny_spectra()
     kp = random_kernels(sp, 200, seed=0)
     rng = np.random.default_rng(1)
-    ks = KernelSet(
+    return KernelSet(
         face_ids=kp["face_ids"],
         barycentrics=kp["bary"],
         theta=kp["theta"],
         eta=rng.uniform(1, 200, 200),
         threshold=rng.uniform(0.3, 0.9999, 200),
-        sharpness=rng.uniform(10, 200, 200),
+        sharpness=rng.uniform(10, max_sharpness, 200),
         colors=kp["colors"],
         base_color=kp["base_color"],
         kernel_config=KernelConfig(0.01, 0.3, 30, 8),
         mesh_hash=sp.mesh_hash,
         config_hash=sp.config_hash,
     )
+
+
+def test_compact_storage_changes_colours_little(tmp_path):
+    """Measured effect of float16 members on albedo, on real (tiny) spectra."""
+    from hktex_engine.kernels.query import AlbedoQuery
+    from tests.kernels_support import random_points, tiny_spectra
+
+    sp = tiny_spectra()
+    ks = _random_set(sp, max_sharpness=200)
     back = load_hkt(save_hkt(ks, tmp_path / "k.hkt"), sp.mesh_hash, sp.config_hash)
     f, b = random_points(sp, 3000, seed=2)
     exact = AlbedoQuery(sp, ks, device="cpu").colors(f, b)
@@ -510,24 +517,10 @@ def test_quantised_storage_changes_colours_little(tmp_path):
     """Measured effect of the default quantisation on albedo, on real (tiny) spectra."""
     from hktex_engine.evaluation.metrics import psnr
     from hktex_engine.kernels.query import AlbedoQuery
-    from tests.kernels_support import random_kernels, random_points, tiny_spectra
+    from tests.kernels_support import random_points, tiny_spectra
 
     sp = tiny_spectra()
-    kp = random_kernels(sp, 200, seed=0)
-    rng = np.random.default_rng(1)
-    ks = KernelSet(
-        face_ids=kp["face_ids"],
-        barycentrics=kp["bary"],
-        theta=kp["theta"],
-        eta=rng.uniform(1, 200, 200),
-        threshold=rng.uniform(0.3, 0.9999, 200),
-        sharpness=rng.uniform(10, 60, 200),
-        colors=kp["colors"],
-        base_color=kp["base_color"],
-        kernel_config=KernelConfig(0.01, 0.3, 30, 8),
-        mesh_hash=sp.mesh_hash,
-        config_hash=sp.config_hash,
-    )
+    ks = _random_set(sp, max_sharpness=60)
     back = load_hkt(save_hkt(ks, tmp_path / "k.hkt", quantised=True), sp.mesh_hash)
     f, b = random_points(sp, 3000, seed=2)
     exact = AlbedoQuery(sp, ks, device="cpu").colors(f, b)
