@@ -288,3 +288,19 @@ def test_gltf_base_colour_this_reader_would_misread_is_refused(tmp_path, change)
         load_mesh(tmp_path / "model.gltf")
     # geometry alone (what spectra read) does not depend on the texture
     assert load_mesh(tmp_path / "model.gltf", read_texture=False).n_faces == len(f)
+
+
+def test_obj_materials_without_any_map_load_untextured(tmp_path):
+    """An OBJ whose MTL did not come along (a REST upload sends the mesh file alone) names
+    several materials: it loads as geometry without texture, as before the atlas."""
+    rng = np.random.default_rng(9)
+    v, f, uvs = sphere_with_uvs(rng)
+    lines = ["mtllib missing.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
+    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
+    for i, tri in enumerate(f):
+        lines.append(f"usemtl {'AB'[i % 2]}")
+        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
+    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+    mesh = load_mesh(tmp_path / "m.obj")
+    assert mesh.texture is None and not mesh.has_texture
+    np.testing.assert_allclose(mesh.corner_uvs, uvs)

@@ -60,7 +60,9 @@ def _kernelset_for(live, tmp_path) -> str:
     from hktex_engine.spectra.grid import SpectraCache
     from tests.demo_support import DEMO_CONFIG, random_kernelset
 
-    obj = write_textured_obj(tmp_path / "blob.obj", *textured_demo(1, 32))
+    # Two subdivisions: at one, 15 % of the blob's UV area lies outside [0, 1], and the bake
+    # rightly takes a fresh atlas there (no original / error layers to compare).
+    obj = write_textured_obj(tmp_path / "blob.obj", *textured_demo(2, 32))
     png = obj.with_name("blob_albedo.png")
     with httpx.Client(base_url=live.url, headers=ALICE, timeout=60) as c:
         files = {"mesh": ("blob.obj", obj.read_bytes()), "texture": ("t.png", png.read_bytes())}

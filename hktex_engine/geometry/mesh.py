@@ -518,6 +518,10 @@ def _obj_materials_texture(
     if len(keys) == 1:  # several names, one appearance: read as a single material
         texture = next(a.image for a in appearances if a.key in keys)
         return texture, corner_uvs
+    if all(a.image is None for a in appearances):
+        # No map at all (the MTL did not come along, as in a REST upload, or holds colours
+        # only): untextured, as before; a texture can still be given explicitly.
+        return None, corner_uvs
     unknown = sorted({a.name for a in appearances if a.image is None and a.colour is None})
     if np.any(tri_material < 0) or unknown:
         raise TextureError(
