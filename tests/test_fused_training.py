@@ -338,3 +338,37 @@ def test_half_conversion_is_exact_on_every_pattern():
     nan = np.isnan(ref)
     assert (np.isnan(got) == nan).all()
     assert (got[~nan].view(np.uint32) == ref[~nan].view(np.uint32)).all()
+
+
+def test_training_reads_a_float16_grid_in_place_above_the_copy_cap(spectra3, monkeypatch):
+    """A grid whose float32 copy would pass ``EVECS32_MAX_BYTES`` (a 128k-vertex mesh's is
+    3.2 GB) trains compiled on the float16 grid itself: no copy, and the same step (colours,
+    choices and every gradient) as training on the copy. Before, it fell back to the torch
+    path, 5x slower a step at that size."""
+    import dataclasses
+
+    from hktex_engine.kernels import model as kernels_mod
+
+    monkeypatch.setattr(kernels_mod, "TABLE_PATH", "never")
+    half = dataclasses.replace(spectra3, evecs=np.asarray(spectra3.evecs, dtype=np.float16))
+    kp = make_params(half, 300, seed=23)
+    f, b = _points(half, 900, 9)
+    target = torch.rand((900, 3), generator=torch.Generator().manual_seed(5))
+    copied = SpectralField(half, device="cpu", dtype=torch.float32)
+    ref = step_grads(make_model(copied, kp, CONFIG), f, b, target)
+    assert copied._evecs32.dtype == np.float32  # under the cap: the copy, as before
+
+    monkeypatch.setattr(fused_rank, "EVECS32_MAX_BYTES", 0)
+    in_place = SpectralField(half, device="cpu", dtype=torch.float32)
+    calls = []
+    real = fused_rank.rank_pairs
+    monkeypatch.setattr(fused_rank, "rank_pairs", lambda *a, **k: calls.append(k) or real(*a, **k))
+    model = make_model(in_place, kp, CONFIG)
+    assert model._compiled_training() and fused_terms.available(in_place, torch.float32)
+    got = step_grads(model, f, b, target)
+    assert calls and getattr(in_place, "_evecs32", None) is None
+    np.testing.assert_allclose(got[0].numpy(), ref[0].numpy(), atol=1e-6)
+    assert (got[1]["indices"] == ref[1]["indices"]).all()
+    for name, g_ref in ref[2].items():
+        scale = float(g_ref.abs().max())
+        np.testing.assert_allclose(got[2][name].numpy(), g_ref.numpy(), atol=1e-5 * scale, err_msg=name)  # fmt: skip

@@ -413,7 +413,8 @@ def rank_pairs(
 
 
 #: Largest float32 copy of a float16 eigenvector grid the training path makes (bytes);
-#: above it the torch path runs (it up-casts the rows it gathers).
+#: above it training reads the float16 grid in place, as sparse queries do (the same values:
+#: the conversion is exact), so a large mesh trains compiled without a multi-GB copy.
 EVECS32_MAX_BYTES = 2 * 2**30
 
 
@@ -439,9 +440,10 @@ def ranking_grid(field, keep: bool) -> tuple[np.ndarray, np.ndarray]:
     copy. So sparse no-grad queries run compiled on a float16 grid read in place: a query
     service holding grids memory-mapped (shared between workers) makes no private copy, and
     a one-off ``hktex query`` pays no conversion of the whole grid. Training (``keep``) makes
-    the copy once per field (:func:`field_evecs32`): its steps read each point's rows again."""
+    the copy once per field (:func:`field_evecs32`) where it :func:`fits`: its steps read
+    each point's rows again; a larger grid is read in place by training too."""
     e = field.evecs
-    if keep or has_float32(field) or e.dtype != torch.float16:
+    if has_float32(field) or e.dtype != torch.float16 or (keep and fits(field)):
         evecs = field_evecs32(field)
         return evecs, np.empty((0, *evecs.shape[1:]), np.uint16)
     half = compiled.array(e).view(np.uint16)

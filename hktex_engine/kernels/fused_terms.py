@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from hktex_engine.kernels import compiled
-from hktex_engine.kernels.fused_rank import field_evecs32, fits, has_float32
+from hktex_engine.kernels.fused_rank import can_rank, field_evecs32, has_float32
 from hktex_engine.spectra.interpolation import gather_rows
 
 #: Kernels per thread below which one thread does the call.
@@ -39,8 +39,9 @@ THREAD_MIN_KERNELS = 2048
 
 
 def available(field, dtype: torch.dtype) -> bool:
-    """Whether the compiled terms can answer for ``field`` in ``dtype``."""
-    return compiled.available(field.device, dtype) and fits(field)
+    """Whether the compiled terms can answer for ``field`` in ``dtype`` (a float16 grid with
+    no float32 copy has its kernels' rows gathered and up-cast per call, :func:`row_table`)."""
+    return compiled.available(field.device, dtype) and can_rank(field)
 
 
 def _forward(table, ridx, evals, nodes, bary, weights, t, coef, phi, decay, norm):

@@ -960,9 +960,9 @@ class HeatKernelModel(nn.Module):
         )
 
     def _compiled_training(self) -> bool:
-        return fused_rank.available(self.colors.device, self.colors.dtype) and fused_rank.fits(
-            self.field
-        )
+        """Training takes the compiled step wherever no-grad ranking does (a float16 grid
+        whose float32 copy would pass ``fused_rank.EVECS32_MAX_BYTES`` is read in place)."""
+        return self.ranks_compiled()
 
     @torch.no_grad()
     def _ranked_no_grad(self, face_ids, bary, cand, d2):
