@@ -109,6 +109,33 @@ def test_upload_validate_dedup_list_delete(server, mesh_files):
         assert c.get(f"/v1/meshes/{other_tex.json()['id']}").status_code == 404
 
 
+def test_a_glb_with_several_materials_uploads_textured(server, tmp_path):
+    """Over REST a GLB carries all its materials (an OBJ arrives without its MTL): two
+    primitives, a textured one and a plain colour, upload as one textured mesh."""
+    import trimesh
+    from PIL import Image
+
+    from hktex_engine.evaluation.synthetic import icosphere
+
+    v, f = icosphere(1)
+    scene = trimesh.Scene()
+    for part, faces in enumerate((f[: len(f) // 2], f[len(f) // 2 :])):
+        split_v = v[faces].reshape(-1, 3)
+        uv = np.random.default_rng(part).uniform(0.1, 0.9, (len(split_v), 2))
+        image = Image.fromarray(np.full((8, 8, 3), 200, np.uint8)) if part == 0 else None
+        material = trimesh.visual.material.PBRMaterial(
+            baseColorTexture=image, baseColorFactor=[1.0, 0.5 * part + 0.5, 1.0, 1.0]
+        )
+        visual = trimesh.visual.TextureVisuals(uv=uv, material=material)
+        tri = np.arange(len(split_v)).reshape(-1, 3)
+        scene.add_geometry(trimesh.Trimesh(split_v, tri, visual=visual, process=False))
+    scene.export(tmp_path / "two.glb")
+    with client(server) as c:
+        r = upload(c, tmp_path / "two.glb")
+        assert r.status_code == 201, r.text
+        assert r.json()["has_texture"] and r.json()["n_faces"] == len(f)
+
+
 def test_concurrent_identical_uploads_get_one_id(server, mesh_files):
     from concurrent.futures import ThreadPoolExecutor
 
