@@ -140,6 +140,18 @@ def write_png(path, image):
     return np.round(image * 255) / 255
 
 
+def write_material_obj(path, v, f, uvs, mtllib: str, material_of) -> None:
+    """An OBJ of ``(v, f)`` with per-corner ``uvs``; before face ``i`` a ``usemtl
+    material_of(i)`` line, or none where it returns None (the previous one stays in force)."""
+    lines = [f"mtllib {mtllib}"] + [f"v {x} {y} {z}" for x, y, z in v]
+    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
+    for i, tri in enumerate(f):
+        if material_of(i) is not None:
+            lines.append(f"usemtl {material_of(i)}")
+        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
+    path.write_text("\n".join(lines) + "\n")
+
+
 def test_obj_with_several_materials_reads_each_materials_colours(tmp_path):
     rng = np.random.default_rng(4)
     v, f, uvs = sphere_with_uvs(rng)
@@ -151,12 +163,7 @@ def test_obj_with_several_materials_reads_each_materials_colours(tmp_path):
         "newmtl C\nKd 0.1 0.2 0.3\n"
     )
     mat = np.arange(len(f)) % 3  # A, B, C interleaved: three runs of usemtl and back
-    lines = ["mtllib m.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
-    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
-    for i, tri in enumerate(f):
-        lines.append(f"usemtl {'ABC'[mat[i]]}")
-        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
-    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+    write_material_obj(tmp_path / "m.obj", v, f, uvs, "m.mtl", lambda i: "ABC"[mat[i]])
     mesh = load_mesh(tmp_path / "m.obj")
     assert mesh.has_texture
     apps = [
@@ -179,12 +186,7 @@ def test_obj_materials_sharing_one_map_read_as_one(tmp_path):
     v, f, uvs = sphere_with_uvs(rng)
     img = write_png(tmp_path / "a.png", rng.random((8, 8, 3)))
     (tmp_path / "m.mtl").write_text("newmtl A\nmap_Kd a.png\nnewmtl B\nmap_Kd a.png\n")
-    lines = ["mtllib m.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
-    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
-    for i, tri in enumerate(f):
-        lines += [f"usemtl {'AB'[i % 2]}"]
-        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
-    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+    write_material_obj(tmp_path / "m.obj", v, f, uvs, "m.mtl", lambda i: "AB"[i % 2])
     mesh = load_mesh(tmp_path / "m.obj")
     np.testing.assert_allclose(mesh.texture, img, atol=1e-6)
     np.testing.assert_allclose(mesh.corner_uvs, uvs)
@@ -196,17 +198,11 @@ def test_obj_faces_without_a_known_colour_are_refused(tmp_path, defect):
     v, f, uvs = sphere_with_uvs(rng)
     write_png(tmp_path / "a.png", rng.random((8, 8, 3)))
     (tmp_path / "m.mtl").write_text("newmtl A\nmap_Kd a.png\nnewmtl B\nKd 1 0 0\n")
-    lines = ["mtllib m.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
-    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
-    for i, tri in enumerate(f):
-        if i % 3 == 1:
-            lines.append("usemtl A")
-        elif i % 3 == 2:
-            lines.append("usemtl B" if defect == "no usemtl" else "usemtl Z")
-        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
     if defect == "no usemtl":
-        lines.insert(1 + len(v) + len(uvs.reshape(-1, 2)), "# faces before any usemtl")
-    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+        names = {0: None, 1: "A", 2: "B"}  # face 0 comes before any usemtl
+    else:
+        names = {0: "A", 1: "A", 2: "Z"}  # no MTL defines Z
+    write_material_obj(tmp_path / "m.obj", v, f, uvs, "m.mtl", lambda i: names[i % 3])
     with pytest.raises(TextureError, match="colour is unknown"):
         load_mesh(tmp_path / "m.obj")
 
@@ -295,12 +291,7 @@ def test_obj_materials_without_any_map_load_untextured(tmp_path):
     several materials: it loads as geometry without texture, as before the atlas."""
     rng = np.random.default_rng(9)
     v, f, uvs = sphere_with_uvs(rng)
-    lines = ["mtllib missing.mtl"] + [f"v {x} {y} {z}" for x, y, z in v]
-    lines += [f"vt {a} {b}" for a, b in uvs.reshape(-1, 2)]
-    for i, tri in enumerate(f):
-        lines.append(f"usemtl {'AB'[i % 2]}")
-        lines.append("f " + " ".join(f"{tri[c] + 1}/{3 * i + c + 1}" for c in range(3)))
-    (tmp_path / "m.obj").write_text("\n".join(lines) + "\n")
+    write_material_obj(tmp_path / "m.obj", v, f, uvs, "missing.mtl", lambda i: "AB"[i % 2])
     mesh = load_mesh(tmp_path / "m.obj")
     assert mesh.texture is None and not mesh.has_texture
     np.testing.assert_allclose(mesh.corner_uvs, uvs)
