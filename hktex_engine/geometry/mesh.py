@@ -82,8 +82,8 @@ class Mesh:
 
 #: The largest mesh (vertices after merging) the engine and CLI accept unless told otherwise
 #: (the service sets its own, 60,000 by default, for a shared machine). Measured on two cores:
-#: the default spectra of a 139,650-vertex mesh in 174 s at 1.9 GB peak, and `hktex fit` of a
-#: 128,000-vertex torus (spectra and 300 steps, 2.3 steps/s) in 6 min at 2.9 GB peak.
+#: the default spectra of a 139,650-vertex mesh in 174 s at 1.9 GB peak, and a default
+#: `hktex fit` of a 128,000-vertex torus (spectra cached) in 8 min 40 s at 2.9 GB peak.
 DEFAULT_MAX_VERTICES = 150_000
 
 #: Bumped whenever the canonical geometry behind :attr:`Mesh.content_hash` changes meaning.
