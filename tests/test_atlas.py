@@ -295,3 +295,19 @@ def test_obj_materials_without_any_map_load_untextured(tmp_path):
     mesh = load_mesh(tmp_path / "m.obj")
     assert mesh.texture is None and not mesh.has_texture
     np.testing.assert_allclose(mesh.corner_uvs, uvs)
+
+
+@pytest.mark.parametrize(
+    "written", ["textures\\a.png", "C:\\Users\\me\\assets\\a.png", "/home/me/assets/a.png"]
+)
+def test_map_kd_written_elsewhere_finds_the_shipped_file(tmp_path, written):
+    """Windows separators and absolute paths from the author's machine: the map is read from
+    where the asset ships it (its relative path, else its file name beside the MTL)."""
+    rng = np.random.default_rng(10)
+    v, f, uvs = sphere_with_uvs(rng)
+    folder = tmp_path / "textures" if written.startswith("textures") else tmp_path
+    folder.mkdir(exist_ok=True)
+    img = write_png(folder / "a.png", rng.random((8, 8, 3)))
+    (tmp_path / "m.mtl").write_text(f"newmtl A\nmap_Kd {written}\n")
+    write_material_obj(tmp_path / "m.obj", v, f, uvs, "m.mtl", lambda i: "A")
+    np.testing.assert_allclose(load_mesh(tmp_path / "m.obj").texture, img, atol=1e-6)

@@ -480,10 +480,25 @@ def _is_number(token: str) -> bool:
 
 
 def _map_file(path: Path, mtl_path: Path, name: str) -> Path:
-    image = _inside_folder(path.parent, str(mtl_path.parent / name), "map_Kd")
-    if not image.is_file():
-        raise TextureError(f"{mtl_path.name}: map_Kd {name!r} not found")
-    return image
+    """The image a ``map_Kd`` names. Written on Windows it may use backslashes, or an
+    absolute path on the author's machine: then the file of that name beside the MTL is what
+    the asset shipped (Blender's importer looks there too). Nothing outside the mesh's
+    folder is read either way."""
+    relative = name.replace("\\", "/")
+    beside = _inside_folder(path.parent, str(mtl_path.parent / relative.split("/")[-1]), "map_Kd")
+    if relative.startswith("/") or relative[1:3] == ":/":
+        if beside.is_file():
+            return beside
+        raise TextureError(
+            f"map_Kd {name!r} points outside the mesh's folder, and no "
+            f"{beside.name!r} lies beside {mtl_path.name}"
+        )
+    image = _inside_folder(path.parent, str(mtl_path.parent / relative), "map_Kd")
+    if image.is_file():
+        return image
+    if beside.is_file():
+        return beside
+    raise TextureError(f"{mtl_path.name}: map_Kd {name!r} not found")
 
 
 def _obj_materials_texture(
