@@ -447,6 +447,7 @@ def main() -> int:
     )
     args = ap.parse_args()
     command = "python benchmarks/fidelity.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    args.out.mkdir(parents=True, exist_ok=True)  # before the fits: a row must not be lost
     jsonl, md = args.out / "fidelity.jsonl", args.out / "fidelity.md"
     if args.table:
         write_table(jsonl, md, command)
