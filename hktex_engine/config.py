@@ -24,7 +24,8 @@ class SpectralConfig:
 
     ``angles`` nodes span [0, pi] with both ends; ``anisotropies`` are eta values (grid
     coordinate s = ln(1 + eta)). ``k`` defaults to 128, not ALGORITHM.md's 256 nor the 64 it
-    was: with the default preset (t = 0.06245) and its full 5,000 steps, full default fits on
+    was: with the default preset (at t = 0.06245, its diffusion time until the twenty-first
+    pass of docs/fitting.md; untried at 0.0156) and its full 5,000 steps, full default fits on
     K = 128 against K = 64 (docs/fitting.md, seventh pass) scored blub +2.49 dB, bob +0.97
     (its paper views from -2.23 to +0.13 dB against vertex colours of twice the bytes), spot
     +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
@@ -326,14 +327,26 @@ DEFAULT_LR_THRESHOLD = 0.0055
 #: and 0.02 lost on both meshes tried (twelfth pass). All within §4-5 as written: σ_B is in
 #: every file.
 DEFAULT_SIGMA_B = 0.025
+#: Diffusion time ``t`` = 0.0156125, a quarter of the later configuration's 0.06245: with σ_B
+#: at 0.025 the biharmonic factor cuts every footprint to its size, and a narrower heat kernel
+#: keeps more of its anisotropy inside that cut (a footprint's shape comes from ``h``). Paired
+#: full default fits on one VM (docs/fitting.md, twenty-first pass): blub +0.44 / +0.58 dB
+#: (seeds 0 / 2), bob +0.47, CesiumMan +1.53, marble +0.07, spot −0.18; mean +0.48. The
+#: kernel is then truncated at K = 128 (``exp(−t λ_K)`` 0.62-0.86), which the fits absorb.
+#: Halving it (0.031) had lost at σ_B 0.05 (seventh pass) and gained +0.28 on blub at 0.025.
+DEFAULT_DIFFUSION_TIME = 0.0156125
 PRESETS["default"] = replace(
     PRESETS["later"],
     polish_colors=True,
     sampling="error",
     lr_sharpness=DEFAULT_LR_SHARPNESS,
     lr_threshold=DEFAULT_LR_THRESHOLD,
-    kernel=replace(LATER_KERNEL, sigma_b=DEFAULT_SIGMA_B),
+    kernel=replace(LATER_KERNEL, sigma_b=DEFAULT_SIGMA_B, diffusion_time=DEFAULT_DIFFUSION_TIME),
 )
+#: The presets built on the default below were measured at the later configuration's
+#: ``t`` = 0.06245 (the default's until the twenty-first pass) and keep it until they are
+#: measured at the new one.
+_MEASURED_KERNEL = replace(PRESETS["default"].kernel, diffusion_time=LATER_KERNEL.diffusion_time)
 
 #: ``"layered"``: the default with the layered blend (``kernels.blending``), its priorities
 #: trained over the last 30 % of the steps only, after density control has placed the
@@ -343,7 +356,7 @@ PRESETS["default"] = replace(
 #: 44.95 dB read as fitted, 39.38 with the priorities dropped): a named choice, not the default.
 PRESETS["layered"] = replace(
     PRESETS["default"],
-    kernel=replace(PRESETS["default"].kernel, blend="layered"),
+    kernel=replace(_MEASURED_KERNEL, blend="layered"),
     priority_start=0.7,
 )
 
@@ -357,6 +370,7 @@ DENSE_ERROR_THRESHOLD = 0.012
 PRESETS["dense"] = replace(
     PRESETS["default"],
     density=replace(PRESETS["default"].density, error_threshold=DENSE_ERROR_THRESHOLD),
+    kernel=_MEASURED_KERNEL,
 )
 
 #: ``"sigma"``: the default with a biharmonic scale learnt per kernel (``KernelConfig.sigma =
@@ -367,7 +381,7 @@ PRESETS["dense"] = replace(
 SIGMA_PRESET_START = 0.4
 PRESETS["sigma"] = replace(
     PRESETS["default"],
-    kernel=replace(PRESETS["default"].kernel, sigma="per_kernel"),
+    kernel=replace(_MEASURED_KERNEL, sigma="per_kernel"),
     sigma_start=SIGMA_PRESET_START,
 )
 

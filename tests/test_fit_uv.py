@@ -264,8 +264,8 @@ def test_api_choices_are_the_engines():
 
 def test_default_preset_is_later_with_only_the_measured_changes():
     """The product's default differs from the authors' later configuration in exactly the
-    fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth and eleventh
-    passes), and `later` keeps their rates and their σ_B."""
+    fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth, eleventh and
+    twenty-first passes), and `later` keeps their rates, their σ_B and their t."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS
@@ -276,37 +276,38 @@ def test_default_preset_is_later_with_only_the_measured_changes():
         "sampling": "error",
         "lr_sharpness": 0.2,
         "lr_threshold": 0.0055,
-        "kernel": replace(later.kernel, sigma_b=0.025),
+        "kernel": replace(later.kernel, sigma_b=0.025, diffusion_time=0.0156125),
     }
     assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
-    assert later.kernel.sigma_b == 0.05
+    assert later.kernel.sigma_b == 0.05 and later.kernel.diffusion_time == 0.06245
 
 
 def test_layered_preset_is_the_default_with_late_priorities():
-    """'layered' differs from the default in exactly the blend and the priorities' start, and
-    the flat mapping the CLI and the API pass selects it by name."""
+    """'layered' differs from the default in exactly the blend and the priorities' start (and
+    keeps the t it was measured at, 0.06245), and the CLI's and the API's flat mapping
+    selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
     default, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
     assert set(_differing(default, layered)) == {"kernel", "priority_start"}
-    assert layered.kernel == replace(default.kernel, blend="layered")
+    assert layered.kernel == replace(default.kernel, blend="layered", diffusion_time=0.06245)
     assert layered.priority_start == 0.7 and default.kernel.blend == "paper"
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
 
 
 def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
     """'sigma' differs from the default in the kernel config's ``sigma`` and the scales' start
-    (0.4 of the steps, measured: docs/fitting.md, sixteenth pass) alone, and the flat mapping
-    the CLI and the API pass selects it by name."""
+    (0.4 of the steps, measured: docs/fitting.md, sixteenth pass) alone (and keeps the t it
+    was measured at, 0.06245), and the CLI's and the API's flat mapping selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
     default, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
     assert _differing(default, scaled) == {
-        "kernel": replace(default.kernel, sigma="per_kernel"),
+        "kernel": replace(default.kernel, sigma="per_kernel", diffusion_time=0.06245),
         "sigma_start": 0.4,
     }
     assert default.kernel.sigma == "uniform" and not default.kernel.per_kernel_sigma
@@ -315,13 +316,15 @@ def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
 
 def test_dense_preset_is_the_default_with_a_lower_densification_threshold():
     """'dense' differs from the default in the densification threshold alone (so its files
-    are plain §4-5 sets), and the CLI's and the API's flat mapping selects it by name."""
+    are plain §4-5 sets) and the t it was measured at (0.06245), and the CLI's and the API's
+    flat mapping selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
     default, dense = PRESETS[DEFAULT_PRESET], PRESETS["dense"]
-    assert set(_differing(default, dense)) == {"density"}
+    assert set(_differing(default, dense)) == {"density", "kernel"}
+    assert dense.kernel == replace(default.kernel, diffusion_time=0.06245)
     assert dense.density == replace(default.density, error_threshold=0.012)
     assert default.density.error_threshold > dense.density.error_threshold
     assert dense.kernel.blend == "paper"
@@ -346,7 +349,7 @@ def test_a_scale_per_kernel_combines_with_any_preset():
     assert given == replace(pair, sigma_start=0.1)
     assert fit_params_from({"preset": "sigma", "sigma": "per_kernel"}) == scaled
     back = fit_params_from({"preset": "sigma", "sigma": "uniform"})
-    assert back.kernel == PRESETS["default"].kernel
+    assert back.kernel == replace(PRESETS["default"].kernel, diffusion_time=0.06245)
     with pytest.raises(ValueError, match="sigma must be one of"):
         fit_params_from({"sigma": "per_vertex"})
 
