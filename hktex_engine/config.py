@@ -331,7 +331,8 @@ DEFAULT_SIGMA_B = 0.025
 #: at 0.025 the biharmonic factor cuts every footprint to its size, and a narrower heat kernel
 #: keeps more of its anisotropy inside that cut (a footprint's shape comes from ``h``). Paired
 #: full default fits on one VM (docs/fitting.md, twenty-first pass): blub +0.44 / +0.58 dB
-#: (seeds 0 / 2), bob +0.47, CesiumMan +1.53, marble +0.07, spot −0.18; mean +0.48. The
+#: (seeds 0 / 2), bob +0.47, CesiumMan +1.53, marble +0.07, spot −0.18 / −0.67 (seeds 0 / 1);
+#: mean +0.43 (seeds averaged), the held-out torus +0.22. The
 #: kernel is then truncated at K = 128 (``exp(−t λ_K)`` 0.62-0.86), which the fits absorb.
 #: Halving it (0.031) had lost at σ_B 0.05 (seventh pass) and gained +0.28 on blub at 0.025.
 DEFAULT_DIFFUSION_TIME = 0.0156125
