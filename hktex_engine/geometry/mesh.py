@@ -713,7 +713,7 @@ def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _Raw
     if not geometries:
         raise UnreadableMeshError(f"{path.name}: no triangle mesh found in the {kind.upper()} file")
     positions, faces, uv_parts, appearances = [], [], [], []
-    image_cache: dict[int, np.ndarray] = {}
+    image_cache: dict[int, tuple[np.ndarray, str]] = {}
     offset = 0
     for g in geometries:
         v = np.asarray(g.vertices, dtype=np.float64)
@@ -739,9 +739,13 @@ def _read_with_trimesh(path: Path, kind: str, read_texture: bool = True) -> _Raw
         from hktex_engine.geometry.atlas import one_texture
 
         # Instances of one geometry carry equal appearances: one tile serves them all.
-        keys = list(dict.fromkeys(a.key for a in appearances))
-        distinct = [next(a for a in appearances if a.key == k) for k in keys]
-        per_face = np.repeat([keys.index(a.key) for a in appearances], [len(f) for f in faces])
+        first: dict[tuple, int] = {}
+        distinct = []
+        for a in appearances:
+            if a.key not in first:
+                first[a.key] = len(distinct)
+                distinct.append(a)
+        per_face = np.repeat([first[a.key] for a in appearances], [len(f) for f in faces])
         texture, atlas_uvs = one_texture(distinct, per_face, corner_uvs)
         corner_uvs = atlas_uvs if texture is not None else corner_uvs
     if not np.all(np.isfinite(corner_uvs)):
@@ -765,9 +769,12 @@ def _scene_meshes(scene: trimesh.Scene) -> list[trimesh.Trimesh]:
     return out
 
 
-def _trimesh_appearance(geom: trimesh.Trimesh, cache: dict[int, np.ndarray]) -> Appearance:
+def _trimesh_appearance(
+    geom: trimesh.Trimesh, cache: dict[int, tuple[np.ndarray, str]]
+) -> Appearance:
     """A geometry's base colour: its material's image times ``baseColorFactor``, or the factor
-    alone (glTF's default material is white); ``cache`` (per load) converts each image once."""
+    alone (glTF's default material is white); ``cache`` (per load) converts and hashes each
+    image once (the hash tells copies of one image on several instances apart from others)."""
     from hktex_engine.geometry.atlas import Appearance, linear_to_srgb
 
     material = getattr(geom.visual, "material", None)
@@ -782,10 +789,10 @@ def _trimesh_appearance(geom: trimesh.Trimesh, cache: dict[int, np.ndarray]) -> 
         return Appearance(("colour", colour), colour=colour, name=name)
     key = id(image)  # the image stays referenced by ``geom`` for the whole load
     if key not in cache:
-        cache[key] = load_texture(np.asarray(image.convert("RGB")))
-    return Appearance(
-        ("image", texture_hash(cache[key]), rgb), image=cache[key], factor=rgb, name=name
-    )
+        pixels = load_texture(np.asarray(image.convert("RGB")))
+        cache[key] = (pixels, texture_hash(pixels))
+    pixels, digest = cache[key]
+    return Appearance(("image", digest, rgb), image=pixels, factor=rgb, name=name)
 
 
 # ---------------------------------------------------------------------------------------------
