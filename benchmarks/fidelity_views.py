@@ -212,6 +212,7 @@ def main() -> int:
     command = "python benchmarks/fidelity_views.py " + " ".join(
         shlex.quote(a) for a in sys.argv[1:]
     )
+    args.out.mkdir(parents=True, exist_ok=True)  # before the renders: a row must not be lost
     sources = mesh_sources(args.mesh_file)
     if args.mesh not in sources:
         ap.error(f"unknown mesh {args.mesh!r}: one of {sorted(sources)}")
