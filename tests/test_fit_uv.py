@@ -264,8 +264,9 @@ def test_api_choices_are_the_engines():
 
 def test_default_preset_is_later_with_only_the_measured_changes():
     """The product's default differs from the authors' later configuration in exactly the
-    fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth, eleventh and
-    twenty-first passes), and `later` keeps their rates, their σ_B and their t."""
+    fields docs/fitting.md measured ("Choosing the defaults", the fifth, sixth, eleventh,
+    twenty-first and twenty-second passes), and `later` keeps their rates, their σ_B, their t
+    and their densification threshold."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS
@@ -277,56 +278,86 @@ def test_default_preset_is_later_with_only_the_measured_changes():
         "lr_sharpness": 0.2,
         "lr_threshold": 0.0055,
         "kernel": replace(later.kernel, sigma_b=0.025, diffusion_time=0.0156125),
+        "density": replace(later.density, error_threshold=0.012),
     }
     assert (later.lr_sharpness, later.lr_threshold) == (0.00129, 0.00109)
     assert later.kernel.sigma_b == 0.05 and later.kernel.diffusion_time == 0.06245
+    assert later.density.error_threshold == 0.0237
 
 
-def test_layered_preset_is_the_default_with_late_priorities():
-    """'layered' differs from the default in exactly the blend and the priorities' start (and
-    keeps the t it was measured at, 0.06245), and the CLI's and the API's flat mapping
+def test_compact_preset_is_the_default_with_the_later_threshold():
+    """'compact' differs from the default in the densification threshold alone (the later
+    configuration's 0.0237: fewer kernels, smaller files; its files are plain §4-5 sets), and
+    the CLI's and the API's flat mapping selects it by name."""
+    from dataclasses import replace
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
+
+    default, compact = PRESETS[DEFAULT_PRESET], PRESETS["compact"]
+    assert _differing(default, compact) == {"density": PRESETS["later"].density}
+    assert compact.density.error_threshold > default.density.error_threshold
+    assert fit_params_from({"preset": "compact", "steps": 9}) == replace(compact, steps=9)
+
+
+def _measured_base():
+    """The default the presets built on it were measured on (the twentieth pass's: t 0.06245,
+    densification threshold 0.0237), spelt out here without the engine's own helper."""
+    from dataclasses import replace
+
+    from hktex_engine.config import DEFAULT_PRESET, PRESETS
+
+    default = PRESETS[DEFAULT_PRESET]
+    return replace(
+        default,
+        kernel=replace(default.kernel, diffusion_time=0.06245),
+        density=replace(default.density, error_threshold=0.0237),
+    )
+
+
+def test_layered_preset_is_the_measured_default_with_late_priorities():
+    """'layered' differs from the default it was measured on (t 0.06245, threshold 0.0237) in
+    exactly the blend and the priorities' start, and the CLI's and the API's flat mapping
     selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
-    default, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
-    assert set(_differing(default, layered)) == {"kernel", "priority_start"}
-    assert layered.kernel == replace(default.kernel, blend="layered", diffusion_time=0.06245)
-    assert layered.priority_start == 0.7 and default.kernel.blend == "paper"
+    base, layered = _measured_base(), PRESETS["layered"]
+    assert set(_differing(base, layered)) == {"kernel", "priority_start"}
+    assert layered.kernel == replace(base.kernel, blend="layered")
+    assert layered.priority_start == 0.7 and PRESETS[DEFAULT_PRESET].kernel.blend == "paper"
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
 
 
-def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
-    """'sigma' differs from the default in the kernel config's ``sigma`` and the scales' start
-    (0.4 of the steps, measured: docs/fitting.md, sixteenth pass) alone (and keeps the t it
-    was measured at, 0.06245), and the CLI's and the API's flat mapping selects it by name."""
+def test_sigma_preset_is_the_measured_default_with_a_scale_per_kernel():
+    """'sigma' differs from the default it was measured on in the kernel config's ``sigma``
+    and the scales' start (0.4 of the steps, measured: docs/fitting.md, sixteenth pass) alone,
+    and the CLI's and the API's flat mapping selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
-    default, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
-    assert _differing(default, scaled) == {
-        "kernel": replace(default.kernel, sigma="per_kernel", diffusion_time=0.06245),
+    base, scaled = _measured_base(), PRESETS["sigma"]
+    assert _differing(base, scaled) == {
+        "kernel": replace(base.kernel, sigma="per_kernel"),
         "sigma_start": 0.4,
     }
+    default = PRESETS[DEFAULT_PRESET]
     assert default.kernel.sigma == "uniform" and not default.kernel.per_kernel_sigma
     assert fit_params_from({"preset": "sigma", "steps": 9}) == replace(scaled, steps=9)
 
 
-def test_dense_preset_is_the_default_with_a_lower_densification_threshold():
-    """'dense' differs from the default in the densification threshold alone (so its files
-    are plain §4-5 sets) and the t it was measured at (0.06245), and the CLI's and the API's
-    flat mapping selects it by name."""
+def test_dense_preset_is_the_measured_default_with_a_lower_densification_threshold():
+    """'dense' differs from the default it was measured on in the densification threshold
+    alone (so its files are plain §4-5 sets): the default's own threshold, at the t of its
+    measurements, and the CLI's and the API's flat mapping selects it by name."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
-    default, dense = PRESETS[DEFAULT_PRESET], PRESETS["dense"]
-    assert set(_differing(default, dense)) == {"density", "kernel"}
-    assert dense.kernel == replace(default.kernel, diffusion_time=0.06245)
-    assert dense.density == replace(default.density, error_threshold=0.012)
-    assert default.density.error_threshold > dense.density.error_threshold
+    base, dense, default = _measured_base(), PRESETS["dense"], PRESETS[DEFAULT_PRESET]
+    assert _differing(base, dense) == {"density": replace(base.density, error_threshold=0.012)}
+    assert dense.density == default.density and dense.kernel.diffusion_time == 0.06245
     assert dense.kernel.blend == "paper"
     assert fit_params_from({"preset": "dense", "steps": 9}) == replace(dense, steps=9)
 

@@ -47,13 +47,17 @@ class SpectralConfigIn(_Strict):
 class FitParamsIn(_Strict):
     """Fitting parameters; every field optional (the preset's values, FitParams)."""
 
-    preset: Literal["default", "earlier", "later", "layered", "dense", "sigma"] | None = Field(
+    preset: (
+        Literal["default", "compact", "earlier", "later", "layered", "dense", "sigma"] | None
+    ) = Field(
         None,
         description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
-        " + error sampling; 'layered' = default + the layered blend, priorities trained"
-        " late: sharper, but .hkt versions 5/6; 'dense' = default with the densification"
-        " threshold halved: more kernels, +0.1 to +1.0 dB on average for 30-70 % more bytes;"
-        " 'sigma' = default with a biharmonic scale learnt per kernel: .hkt versions 7/8);"
+        " + error sampling + the measured changes of docs/fitting.md, densification"
+        " threshold 0.012; 'compact' = default with the later threshold 0.0237: 23-36 %"
+        " smaller files, 0.7-1.6 dB less where the kernel budget does not bind; 'layered' ="
+        " the layered blend, priorities trained late: sharper, but .hkt versions 5/6;"
+        " 'dense' = threshold 0.012 at t = 0.06245, the base measured with sigma"
+        " 'per_kernel'; 'sigma' = a biharmonic scale learnt per kernel: .hkt versions 7/8);"
         " the other fields override it",
     )
     polish_colors: bool | None = Field(
