@@ -339,10 +339,10 @@ DEFAULT_DIFFUSION_TIME = 0.0156125
 #: Densification threshold 0.012, half the later configuration's 0.0237: more new kernels
 #: where the error is. Paired full fits at the new ``t`` (docs/fitting.md, twenty-second
 #: pass): blub +1.15 / +1.08 dB (seeds 0 / 2; over seeds 0-5 48.52 against the MLP's 48.27,
-#: above it on four paired seeds of six), spot +0.71 / +1.56 (seeds 0 / 1), the held-out torus +0.16; bob −0.01 / +0.18, CesiumMan
-#: and marble identical (their 5,000-kernel budget binds either way), for 30-57 % more bytes
-#: where it does not bind.
-#: ``"compact"`` keeps 0.0237 for a user who wants the smaller file.
+#: above it on four paired seeds of six), spot +0.71 / +1.56 (seeds 0 / 1), the held-out
+#: torus +0.16, bob −0.01 / +0.18; CesiumMan and marble identical (their 5,000-kernel budget
+#: binds either way); 30-57 % more bytes where it does not bind. ``"compact"`` keeps 0.0237
+#: for a user who wants the smaller file.
 DEFAULT_ERROR_THRESHOLD = 0.012
 PRESETS["default"] = replace(
     PRESETS["later"],
