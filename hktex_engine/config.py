@@ -356,8 +356,8 @@ PRESETS["default"] = replace(
 
 #: ``"compact"``: the default with the later configuration's densification threshold 0.0237
 #: (the default until the twenty-second pass): 23-36 % smaller files where the kernel budget
-#: does not bind, for 0.7-1.6 dB less on blub and spot (docs/fitting.md, twenty-first and
-#: twenty-second passes). Its files are plain §4-5 sets.
+#: does not bind, for 0.7-1.6 dB less on blub and spot and 0-0.2 on bob (docs/fitting.md,
+#: twenty-first and twenty-second passes). Its files are plain §4-5 sets.
 PRESETS["compact"] = replace(PRESETS["default"], density=LATER_DENSITY)
 
 #: The presets built on the default below (``layered``, ``dense``, ``sigma``) were measured on

@@ -54,7 +54,7 @@ class FitParamsIn(_Strict):
         description="base configuration (ALGORITHM.md §7b; 'default' = later + colour solve"
         " + error sampling + the measured changes of docs/fitting.md, densification"
         " threshold 0.012; 'compact' = default with the later threshold 0.0237: 23-36 %"
-        " smaller files, 0.7-1.6 dB less where the kernel budget does not bind; 'layered' ="
+        " smaller files, 0.7-1.6 dB less on blub and spot, 0-0.2 on bob; 'layered' ="
         " the layered blend, priorities trained late: sharper, but .hkt versions 5/6;"
         " 'dense' = threshold 0.012 at t = 0.06245, the base measured with sigma"
         " 'per_kernel'; 'sigma' = a biharmonic scale learnt per kernel: .hkt versions 7/8);"
