@@ -388,11 +388,7 @@ PRESETS["layered"] = replace(
 #: threshold since the twenty-second pass (at ``t`` = 0.0156125, where blub scores ~1 dB
 #: more); ``dense`` stays as measured because ``--preset dense --sigma per_kernel`` is the
 #: most faithful pair measured (sixteenth pass). Its files are plain §4-5 sets.
-DENSE_ERROR_THRESHOLD = 0.012
-PRESETS["dense"] = replace(
-    _MEASURED_BASE,
-    density=replace(_MEASURED_BASE.density, error_threshold=DENSE_ERROR_THRESHOLD),
-)
+PRESETS["dense"] = replace(_MEASURED_BASE, density=PRESETS["default"].density)
 
 #: ``"sigma"``: the default with a biharmonic scale learnt per kernel (``KernelConfig.sigma =
 #: "per_kernel"``): a footprint can then be longer than the one ``sigma_b`` lets it be
