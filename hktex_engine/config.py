@@ -25,7 +25,8 @@ class SpectralConfig:
     ``angles`` nodes span [0, pi] with both ends; ``anisotropies`` are eta values (grid
     coordinate s = ln(1 + eta)). ``k`` defaults to 128, not ALGORITHM.md's 256 nor the 64 it
     was: with the default preset (at t = 0.06245, its diffusion time until the twenty-first
-    pass of docs/fitting.md; untried at 0.0156) and its full 5,000 steps, full default fits on
+    pass of docs/fitting.md; at 0.0156, K = 256 scored blub -0.36 dB, twenty-second pass) and
+    its full 5,000 steps, full default fits on
     K = 128 against K = 64 (docs/fitting.md, seventh pass) scored blub +2.49 dB, bob +0.97
     (its paper views from -2.23 to +0.13 dB against vertex colours of twice the bytes), spot
     +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
@@ -360,9 +361,9 @@ PRESETS["default"] = replace(
 #: twenty-first and twenty-second passes). Its files are plain §4-5 sets.
 PRESETS["compact"] = replace(PRESETS["default"], density=LATER_DENSITY)
 
-#: The presets built on the default below (``layered``, ``dense``, ``sigma``) were measured on
-#: the default of the twentieth pass: ``t`` = 0.06245 and the densification threshold 0.0237.
-#: They keep that base until they are measured on the present one.
+#: ``layered`` and ``dense`` were measured on the default of the twentieth pass: ``t`` =
+#: 0.06245 and the densification threshold 0.0237, and keep that base until they are measured
+#: on the present one (``sigma`` was, in the twenty-third pass, and moved).
 _MEASURED_BASE = replace(
     PRESETS["default"],
     kernel=replace(PRESETS["default"].kernel, diffusion_time=LATER_KERNEL.diffusion_time),
@@ -387,18 +388,21 @@ PRESETS["layered"] = replace(
 #: over two, the torus +0.12, CesiumMan and marble unchanged. The default has had its
 #: threshold since the twenty-second pass (at ``t`` = 0.0156125, where blub scores ~1 dB
 #: more); ``dense`` stays as measured because ``--preset dense --sigma per_kernel`` is the
-#: most faithful pair measured (sixteenth pass). Its files are plain §4-5 sets.
+#: pair measured in the sixteenth pass (the ``sigma`` preset on the present default is above
+#: it on blub and bob, below on spot: twenty-third pass). Its files are plain §4-5 sets.
 PRESETS["dense"] = replace(_MEASURED_BASE, density=PRESETS["default"].density)
 
 #: ``"sigma"``: the default with a biharmonic scale learnt per kernel (``KernelConfig.sigma =
 #: "per_kernel"``): a footprint can then be longer than the one ``sigma_b`` lets it be
 #: (blub's eyes). Measured in docs/fitting.md (fourteenth pass: a probe; fifteenth: this
-#: preset; sixteenth: the scales learnt from 40 % of the steps, ``SIGMA_PRESET_START``).
+#: preset; sixteenth: the scales learnt from 40 % of the steps, ``SIGMA_PRESET_START``;
+#: twenty-third: on the present default, above it on every mesh measured, and above the
+#: preset's earlier base on all but one fit). It is exactly ``hktex fit --sigma per_kernel``.
 #: Its files are ``.hkt`` versions 7/8, which a reader of §4-5 alone cannot score.
 SIGMA_PRESET_START = 0.4
 PRESETS["sigma"] = replace(
-    _MEASURED_BASE,
-    kernel=replace(_MEASURED_BASE.kernel, sigma="per_kernel"),
+    PRESETS["default"],
+    kernel=replace(PRESETS["default"].kernel, sigma="per_kernel"),
     sigma_start=SIGMA_PRESET_START,
 )
 

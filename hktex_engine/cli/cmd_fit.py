@@ -70,8 +70,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         choices=SIGMAS,
         default=None,
         help="biharmonic scale: uniform (§4's one sigma_B) or per_kernel (learnt from 40 %% of the steps;"
-        " writes .hkt version 7/8, which a §4-5 reader cannot score; with --preset dense the"
-        " pair measured above the MLP on blub, docs/fitting.md)",
+        " writes .hkt version 7/8, which a §4-5 reader cannot score; on the default it is"
+        " --preset sigma, above the default and the MLP on all five shared meshes,"
+        " docs/fitting.md)",
     )
     p.add_argument(
         "--colour",
