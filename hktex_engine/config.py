@@ -361,36 +361,33 @@ PRESETS["default"] = replace(
 #: twenty-first and twenty-second passes). Its files are plain §4-5 sets.
 PRESETS["compact"] = replace(PRESETS["default"], density=LATER_DENSITY)
 
-#: ``layered`` and ``dense`` were measured on the default of the twentieth pass: ``t`` =
-#: 0.06245 and the densification threshold 0.0237, and keep that base until they are measured
-#: on the present one (``sigma`` was, in the twenty-third pass, and moved).
-_MEASURED_BASE = replace(
-    PRESETS["default"],
-    kernel=replace(PRESETS["default"].kernel, diffusion_time=LATER_KERNEL.diffusion_time),
-    density=LATER_DENSITY,
-)
-
 #: ``"layered"``: the default with the layered blend (``kernels.blending``), its priorities
 #: trained over the last 30 % of the steps only, after density control has placed the
-#: footprints. Over the default of σ_B 0.03 it gained on spot, bob and CesiumMan (+0.55..+1.07
-#: dB) and lost on blub (−0.90; docs/fitting.md, eleventh pass), and it writes ``.hkt``
-#: versions 5/6, which a reader of ALGORITHM.md §5 alone cannot score right (blub at σ_B 0.05:
-#: 44.95 dB read as fitted, 39.38 with the priorities dropped): a named choice, not the default.
+#: footprints. On the present default (docs/fitting.md, twenty-third pass) it gained on spot,
+#: CesiumMan and blub (+0.90, +1.02, +0.19 dB) and lost on bob (−0.74); on the default of σ_B
+#: 0.03 it had gained on spot, bob and CesiumMan (+0.55..+1.07) and lost on blub (−0.90;
+#: eleventh pass). It writes ``.hkt`` versions 5/6, which a reader of ALGORITHM.md §5 alone
+#: cannot score right (blub at σ_B 0.05: 44.95 dB read as fitted, 39.38 with the priorities
+#: dropped): a named choice, not the default.
 PRESETS["layered"] = replace(
-    _MEASURED_BASE,
-    kernel=replace(_MEASURED_BASE.kernel, blend="layered"),
+    PRESETS["default"],
+    kernel=replace(PRESETS["default"].kernel, blend="layered"),
     priority_start=0.7,
 )
 
-#: ``"dense"``: the densification threshold halved (0.0237 -> 0.012) on the measured base
-#: (``t`` = 0.06245), so more new kernels go where the error is. Measured with the full fit
+#: ``"dense"``: the default at the diffusion time its threshold was measured on (``t`` =
+#: 0.06245, the twentieth pass's default, where halving the threshold 0.0237 -> 0.012 put
+#: more new kernels where the error is). Measured with the full fit
 #: (docs/fitting.md, thirteenth pass): blub +0.70 dB over four seeds, spot +1.04 and bob +0.26
 #: over two, the torus +0.12, CesiumMan and marble unchanged. The default has had its
 #: threshold since the twenty-second pass (at ``t`` = 0.0156125, where blub scores ~1 dB
 #: more); ``dense`` stays as measured because ``--preset dense --sigma per_kernel`` is the
 #: pair measured in the sixteenth pass (the ``sigma`` preset on the present default is above
 #: it on blub and bob, below on spot: twenty-third pass). Its files are plain §4-5 sets.
-PRESETS["dense"] = replace(_MEASURED_BASE, density=PRESETS["default"].density)
+PRESETS["dense"] = replace(
+    PRESETS["default"],
+    kernel=replace(PRESETS["default"].kernel, diffusion_time=LATER_KERNEL.diffusion_time),
+)
 
 #: ``"sigma"``: the default with a biharmonic scale learnt per kernel (``KernelConfig.sigma =
 #: "per_kernel"``): a footprint can then be longer than the one ``sigma_b`` lets it be
