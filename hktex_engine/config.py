@@ -364,9 +364,9 @@ PRESETS["compact"] = replace(PRESETS["default"], density=LATER_DENSITY)
 #: ``"layered"``: the default with the layered blend (``kernels.blending``), its priorities
 #: trained over the last 30 % of the steps only, after density control has placed the
 #: footprints. On the present default (docs/fitting.md, twenty-third pass) it gained on spot,
-#: CesiumMan and blub (+0.90, +1.02, +0.19 dB) and lost on bob (−0.74); on the default of σ_B
-#: 0.03 it had gained on spot, bob and CesiumMan (+0.55..+1.07) and lost on blub (−0.90;
-#: eleventh pass). It writes ``.hkt`` versions 5/6, which a reader of ALGORITHM.md §5 alone
+#: CesiumMan, blub, marble and the held-out torus (+0.08..+1.02 dB) and lost on bob (−0.74 /
+#: −0.91 over two seeds); on the default of σ_B 0.03 it had gained on spot, bob and CesiumMan
+#: (+0.55..+1.07) and lost on blub (−0.90; eleventh pass). It writes ``.hkt`` versions 5/6, which a reader of ALGORITHM.md §5 alone
 #: cannot score right (blub at σ_B 0.05: 44.95 dB read as fitted, 39.38 with the priorities
 #: dropped): a named choice, not the default.
 PRESETS["layered"] = replace(

@@ -56,7 +56,7 @@ class FitParamsIn(_Strict):
         " threshold 0.012; 'compact' = default with the later threshold 0.0237: 23-36 %"
         " smaller files, 0.7-1.6 dB less on blub and spot, 0-0.2 on bob; 'layered' = the"
         " default with the layered blend, priorities trained late: +0.1 to +1.0 dB on four"
-        " meshes, -0.7 on bob, .hkt versions 5/6;"
+        " meshes, -0.7 to -0.9 on bob, .hkt versions 5/6;"
         " 'dense' = threshold 0.012 at the earlier t = 0.06245; 'sigma' = the default with a"
         " biharmonic scale learnt per kernel (as sigma 'per_kernel'): +0.1 to +1.7 dB over"
         " the default, .hkt versions 7/8, which a reader of ALGORITHM.md §4-5 cannot score);"
