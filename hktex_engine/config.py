@@ -26,8 +26,8 @@ class SpectralConfig:
     coordinate s = ln(1 + eta)). ``k`` defaults to 128, not ALGORITHM.md's 256 nor the 64 it
     was: with the default preset (at t = 0.06245, its diffusion time until the twenty-first
     pass of docs/fitting.md; at 0.0156, K = 256 scored blub -0.36 dB, twenty-second pass) and
-    its full 5,000 steps, full default fits on
-    K = 128 against K = 64 (docs/fitting.md, seventh pass) scored blub +2.49 dB, bob +0.97
+    its full 5,000 steps, full default fits on K = 128 against K = 64 (docs/fitting.md, seventh
+    pass) scored blub +2.49 dB, bob +0.97
     (its paper views from -2.23 to +0.13 dB against vertex colours of twice the bytes), spot
     +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
     features (eyes a few hundredths of the mesh wide) are drawn better; K = 256 did worse on
@@ -366,9 +366,9 @@ PRESETS["compact"] = replace(PRESETS["default"], density=LATER_DENSITY)
 #: footprints. On the present default (docs/fitting.md, twenty-third pass) it gained on spot,
 #: CesiumMan, blub, marble and the held-out torus (+0.08..+1.02 dB) and lost on bob (−0.74 /
 #: −0.91 over two seeds); on the default of σ_B 0.03 it had gained on spot, bob and CesiumMan
-#: (+0.55..+1.07) and lost on blub (−0.90; eleventh pass). It writes ``.hkt`` versions 5/6, which a reader of ALGORITHM.md §5 alone
-#: cannot score right (blub at σ_B 0.05: 44.95 dB read as fitted, 39.38 with the priorities
-#: dropped): a named choice, not the default.
+#: (+0.55..+1.07) and lost on blub (−0.90; eleventh pass). It writes ``.hkt`` versions 5/6,
+#: which a reader of ALGORITHM.md §5 alone cannot score right (blub at σ_B 0.05: 44.95 dB read
+#: as fitted, 39.38 with the priorities dropped): a named choice, not the default.
 PRESETS["layered"] = replace(
     PRESETS["default"],
     kernel=replace(PRESETS["default"].kernel, blend="layered"),

@@ -322,10 +322,10 @@ def test_layered_preset_is_the_default_with_late_priorities():
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
-    base, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
-    assert set(_differing(base, layered)) == {"kernel", "priority_start"}
-    assert layered.kernel == replace(base.kernel, blend="layered")
-    assert layered.priority_start == 0.7 and PRESETS[DEFAULT_PRESET].kernel.blend == "paper"
+    default, layered = PRESETS[DEFAULT_PRESET], PRESETS["layered"]
+    assert set(_differing(default, layered)) == {"kernel", "priority_start"}
+    assert layered.kernel == replace(default.kernel, blend="layered")
+    assert layered.priority_start == 0.7 and default.kernel.blend == "paper"
     assert fit_params_from({"preset": "layered", "steps": 9}) == replace(layered, steps=9)
 
 
@@ -338,13 +338,12 @@ def test_sigma_preset_is_the_default_with_a_scale_per_kernel():
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS, fit_params_from
 
-    base, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
+    default, scaled = PRESETS[DEFAULT_PRESET], PRESETS["sigma"]
     assert fit_params_from({"sigma": "per_kernel"}) == scaled
-    assert _differing(base, scaled) == {
-        "kernel": replace(base.kernel, sigma="per_kernel"),
+    assert _differing(default, scaled) == {
+        "kernel": replace(default.kernel, sigma="per_kernel"),
         "sigma_start": 0.4,
     }
-    default = PRESETS[DEFAULT_PRESET]
     assert default.kernel.sigma == "uniform" and not default.kernel.per_kernel_sigma
     assert fit_params_from({"preset": "sigma", "steps": 9}) == replace(scaled, steps=9)
 
