@@ -235,6 +235,7 @@ def run_one(
         ),
         "fit_s": wall,
         "spectra_k": int(np.asarray(spectra.evals).shape[-1]),
+        "spectra_angles": int(np.asarray(spectra.grid_theta).shape[0]),
         "sigma_ratio": sigma_ratio_stats(res.kernelset),
     }
     # bytes of the file as written (the fit's metrics measure the set before its provenance
@@ -290,7 +291,9 @@ def rebyte(jsonl: Path, cache: Path, auto_min_steps: int) -> None:
         mesh, f, b, target, curve = meshes[key]
         spectra = None
         if r["steps"] >= auto_min_steps:
-            config = SpectralConfig(angles=7, k=int(r.get("spectra_k", 64)))
+            config = SpectralConfig(
+                angles=int(r.get("spectra_angles", 7)), k=int(r.get("spectra_k", 64))
+            )
             spectra = spectra_cache.get_or_compute(mesh, config)
         measure_file(r, load_hkt(path), mesh, spectra, f, b, target, curve)
         print(r["mesh"], r["run"], r.get("quantised_auto"), flush=True)
@@ -472,6 +475,8 @@ def main() -> int:
             label, over = parse_run(spec)
             if args.subdivide:
                 label = f"{label} @mid{args.subdivide}"
+            if args.angles != SpectralConfig().angles:
+                label = f"{label} @angles{args.angles}"
             field = args.tangent_field
             if field != SpectralConfig().tangent_field:
                 label = f"{label} @{field}"
