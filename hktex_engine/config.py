@@ -228,8 +228,6 @@ class FitParams:
     #: eighteenth pass)
     slope_start: float = 0.4
     center_momentum: float = 0.0
-    #: fold theta into [0, pi) after each step instead of clamping it (an axis has no sign)
-    theta_wrap: bool = False
     lr_decay_every: int = 1000
     lr_decay: float = 0.5
     densify: bool = True

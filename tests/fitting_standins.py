@@ -139,11 +139,8 @@ class ToyModel(torch.nn.Module):
         self.refreshes += 1
 
     @torch.no_grad()
-    def project_(self, wrap_theta: bool = False) -> None:
-        if wrap_theta:
-            self.theta.copy_(torch.remainder(self.theta, np.pi))
-        else:
-            self.theta.clamp_(0, np.pi)
+    def project_(self) -> None:
+        self.theta.clamp_(0, np.pi)
         self.s.clamp_(np.log(2.0), np.log(201.0))
         self.threshold.clamp_(0.3, 1 - 1e-4)
         self.sharpness.clamp_(10, 200)

@@ -193,28 +193,6 @@ def test_kernel_optimiser_projects_into_ranges_and_moves_centres():
     assert (model.bary >= 0).all()
 
 
-@pytest.mark.parametrize("wrap", [False, True])
-def test_theta_is_folded_or_clamped_at_the_ends(wrap):
-    """An Adam step that carries theta past 0 or pi: the clamp stops it at the end, the fold
-    (``theta_wrap``) continues it from the other end, i.e. the same axis turned on."""
-    v, f = flat_patch(5)
-    model = ToyModel(v, f, np.arange(4), np.full((4, 3), 1 / 3))
-    with torch.no_grad():
-        model.theta.copy_(torch.tensor([0.05, 0.05, math.pi - 0.05, math.pi - 0.05], dtype=DT))
-    params = FitParams(lr_theta=0.2, theta_wrap=wrap)
-    opt = KernelOptimiser(model, params, FlatTracer(v, f), torch.as_tensor(v), torch.as_tensor(f))
-    start = model.theta.detach().clone()
-    model.theta.grad = torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=DT)  # first Adam step: -lr*sign
-    opt.step(0)
-    free = start - 0.2 * torch.sign(model.theta.grad)  # where theta would go without a range
-    want = torch.remainder(free, math.pi) if wrap else free.clamp(0.0, math.pi)
-    assert torch.allclose(model.theta.detach(), want, atol=1e-12)
-    assert (
-        float(model.theta.detach().min()) >= 0
-        and float(model.theta.detach().max()) < math.pi + 1e-12
-    )
-
-
 @pytest.mark.parametrize("momentum", [0.0, 0.9])
 def test_optimiser_state_arrays_round_trip(momentum):
     v, f = flat_patch(5)

@@ -89,13 +89,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"least-squares colour solve after the last step ({d.polish_colors})",
     )
     p.add_argument(
-        "--theta-wrap",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="fold each kernel's angle into [0, pi) after a step instead of clamping it"
-        f" (an axis has no sign; the file does not change) ({d.theta_wrap})",
-    )
-    p.add_argument(
         "--sampling",
         choices=("uniform", "error"),
         default=None,
@@ -137,7 +130,6 @@ def _params(args: argparse.Namespace) -> FitParams:
             "densify": False if args.no_densify else None,
             "polish_colors": args.polish_colors,
             "sampling": args.sampling,
-            "theta_wrap": args.theta_wrap,
             "blend": args.blend,
             "sigma": args.sigma,
             "colour": args.colour,

@@ -436,8 +436,7 @@ class KernelOptimiser:
         if step_index < self.params.slope_start * self.params.steps:
             attrs.pop("color_slopes", None)  # and linear colours' slopes
         self.adam.step(attrs, scale)
-        # attributes back into their boxes (ALGORITHM.md 4)
-        self.model.project_(wrap_theta=self.params.theta_wrap)
+        self.model.project_()  # attributes back into their boxes (ALGORITHM.md 4)
         gb = self.model.bary.grad
         if gb is not None:
             f0 = self.model.face_ids

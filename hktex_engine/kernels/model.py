@@ -483,17 +483,9 @@ class HeatKernelModel(nn.Module):
         return self.priority[kid.clamp(max=len(self) - 1)]
 
     @torch.no_grad()
-    def project_(self, wrap_theta: bool = False) -> None:
-        """Clamp every attribute into its range after an optimiser step.
-
-        ``wrap_theta`` folds the angle into ``[0, pi)`` instead of clamping it: an axis has no
-        sign, so theta and theta + pi are one footprint (the grid's nodes at 0 and pi share
-        their operator), and a clamp holds kernels that turn past an end against it.
-        """
-        if wrap_theta:
-            self.theta.copy_(torch.remainder(self.theta, math.pi))
-        else:
-            self.theta.clamp_(*THETA_RANGE)
+    def project_(self) -> None:
+        """Clamp every attribute into its range after an optimiser step."""
+        self.theta.clamp_(*THETA_RANGE)
         self.s.clamp_(math.log1p(ETA_RANGE[0]), math.log1p(ETA_RANGE[1]))
         self.threshold.clamp_(*THRESHOLD_RANGE)
         self.sharpness.clamp_(*SHARPNESS_RANGE)

@@ -87,11 +87,6 @@ class FitParamsIn(_Strict):
         " slope per kernel, trained from slope_start of a UV fit; .hkt versions 9/10, which a"
         " §4-5 reader cannot score; docs/fitting.md)",
     )
-    theta_wrap: bool | None = Field(
-        None,
-        description="fold each kernel's angle into [0, pi) after a step instead of clamping it"
-        " (an axis has no sign; the file and its reading do not change; docs/fitting.md)",
-    )
     kernels: int | None = Field(None, ge=1, le=1_000_000)
     max_kernels: int | None = Field(None, ge=1, le=5_000_000)
     steps: int | None = Field(None, ge=0, le=10_000_000)
