@@ -7,7 +7,7 @@ range, the grid's nodes drawn as red lines. Prints per set, as JSON, the share o
 within 1 degree of an end of [0, pi] and the median distance of theta to its nearest angle
 node (uniform angles would give a quarter of the node spacing), so a reader can see whether
 the fit prefers the nodes (docs/fitting.md, twenty-fourth pass: it does, and the clamp at the
-ends holds a quarter of bob's kernels there).
+ends holds 12-23 % of the kernels within 1 degree of them).
 """
 
 from __future__ import annotations
