@@ -414,7 +414,7 @@ def main() -> int:
     ap.add_argument("--meshes", nargs="*", default=None, choices=sorted(MESHES))
     add_mesh_file_argument(ap)
     ap.add_argument("--run", action="append", default=[], help="PRESET[+polish][:JSON]")
-    ap.add_argument("--angles", type=int, default=7)
+    ap.add_argument("--angles", type=int, default=SpectralConfig().angles)
     ap.add_argument(
         "--k", type=int, default=SpectralConfig().k, help="spectra K unless a run sets spectra_k"
     )

@@ -27,9 +27,9 @@ class SpectralConfig:
     was: with the default preset (at t = 0.06245, its diffusion time until the twenty-first
     pass of docs/fitting.md; at 0.0156, K = 256 scored blub -0.36 dB, twenty-second pass) and
     its full 5,000 steps, full default fits on K = 128 against K = 64 (docs/fitting.md, seventh
-    pass) scored blub +2.49 dB, bob +0.97
-    (its paper views from -2.23 to +0.13 dB against vertex colours of twice the bytes), spot
-    +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x the fit time and 2x the spectra: small
+    pass) scored blub +2.49 dB, bob +0.97 (its paper views from -2.23 to +0.13 dB against
+    vertex colours of twice the bytes), spot +0.11, marble +0.09, CesiumMan +0.00, for ~1.25x
+    the fit time and 2x the spectra: small
     features (eyes a few hundredths of the mesh wide) are drawn better; K = 256 did worse on
     blub (41.55 dB against 42.65). (At 400 steps of an early configuration 256 had scored no
     better than 64.) The ``earlier`` preset (t = 8.133e-4) needs 256

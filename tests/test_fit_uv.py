@@ -300,8 +300,8 @@ def test_compact_preset_is_the_default_with_the_later_threshold():
 
 
 def _measured_base():
-    """The default `dense` was measured on (the twentieth pass's: t 0.06245, densification
-    threshold 0.0237), spelt out here without the engine's own helper."""
+    """The twentieth pass's default (t 0.06245, densification threshold 0.0237), on which
+    `dense` was measured, spelt out here independently of the preset's definition."""
     from dataclasses import replace
 
     from hktex_engine.config import DEFAULT_PRESET, PRESETS
