@@ -192,3 +192,96 @@ def test_compiled_tables_against_brute_force(spectra3, grid, monkeypatch):
     for name, value in zip(("kid", "h", "d2", "count"), (got[0], got[1], got[2], got[4]), strict=True):  # fmt: skip
         assert torch.equal(value, getattr(torch_ft, name)), name
     np.testing.assert_allclose(got[3].numpy(), torch_ft.edge2.numpy(), rtol=1e-14)
+
+
+def _corner_tables(corners: np.ndarray, points: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(d2, edge2)`` as the face tables hold them, from explicit coordinates: corners (F, 3,
+    D), points (F, L, D)."""
+    d2 = ((points[:, :, None, :] - corners[:, None, :, :]) ** 2).sum(axis=3)
+    e = corners
+    edge2 = np.stack(
+        [
+            ((e[:, 0] - e[:, 1]) ** 2).sum(1),
+            ((e[:, 0] - e[:, 2]) ** 2).sum(1),
+            ((e[:, 1] - e[:, 2]) ** 2).sum(1),
+        ],
+        axis=1,
+    )
+    return torch.from_numpy(d2), torch.from_numpy(edge2)
+
+
+def test_triangle_distance_from_corner_distances_alone():
+    """``triangle_d2`` against cases solved by hand (above the interior: the height; beyond a
+    corner: that corner; beside an edge: the foot on it; degenerate faces: their segments)
+    and against a dense barycentric sampling of random triangles in 6-D, which it may
+    undercut only by the sampling's spacing, never by more."""
+    from hktex_engine.kernels import fused_tables
+
+    tri = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    points = np.array([[0.5, 0.5, 3.0], [-1.0, -2.0, 0.0], [1.0, -1.0, 0.5], [2.0, 2.0, 0.0]])
+    expect = [9.0, 5.0, 1.25, 2.0]  # height^2; corner 0; foot (1, 0, 0); foot (1, 1, 0)
+    degenerate = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])  # collinear
+    twice = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # a repeated corner
+    corners = np.stack([tri, degenerate, twice])
+    pts = np.stack([points, points, points])
+    d2, edge2 = _corner_tables(corners, pts)
+    got = tables_mod.triangle_d2(d2, edge2).numpy()
+    np.testing.assert_allclose(got[0], expect, atol=1e-12)
+    np.testing.assert_allclose(got[1], [9.25, 5.0, 1.25, 4.0], atol=1e-12)  # segment x in [0, 3]
+    np.testing.assert_allclose(got[2], [9.25, 5.0, 2.25, 5.0], atol=1e-12)  # segment y in [0, 1]
+    compiled_one = (
+        fused_tables._triangle_d2
+    )  # the compiled builder's per-pair twin (pure Python here)
+    for f in range(3):
+        for i in range(4):
+            assert compiled_one(*d2[f, i].tolist(), *edge2[f].tolist()) == pytest.approx(
+                got[f, i], abs=1e-12
+            )
+
+    rng = np.random.default_rng(5)
+    corners = rng.normal(size=(40, 3, 6))
+    pts = rng.normal(size=(40, 25, 6)) * 1.5
+    d2, edge2 = _corner_tables(corners, pts)
+    got = tables_mod.triangle_d2(d2, edge2).numpy()
+    n = 120
+    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    keep = i + j <= n
+    bary = np.stack([n - i[keep] - j[keep], i[keep], j[keep]], axis=1) / n  # (S, 3)
+    samples = np.einsum("sc,fcd->fsd", bary, corners)  # (F, S, D)
+    sampled = ((pts[:, :, None, :] - samples[:, None, :, :]) ** 2).sum(axis=3).min(axis=2)
+    assert (got <= sampled + 1e-9).all()  # a lower bound
+    spacing = np.sqrt(edge2.numpy().max(axis=1))[:, None] / n  # farthest a sample can miss
+    assert (np.sqrt(sampled) - np.sqrt(got) <= spacing + 1e-9).all()  # and tight to the spacing
+
+
+def test_compiled_face_lists_keep_every_points_nearest_and_are_tighter(spectra3, dense_points):
+    """The compiled face lists (CPU float32) hold each point's K_s nearest centres (float64
+    distances over all centres; entries within round-off of the K_s-th count as either), and
+    the triangle bound makes them shorter than the centroid bound alone would."""
+    from hktex_engine.kernels import fused_tables
+
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float32)
+    model = make_model(field, make_params(spectra3, 300, seed=13), CONFIG)
+    assert tables_mod._compiled(field, model.colors)
+    f, b = dense_points
+    with torch.no_grad():
+        tables = model.prepare_tables()
+    faces = torch.arange(field.n_faces)
+    kid, _, _, _, count = fused_tables.face_lists(field, tables, faces, CONFIG.k_search)
+    emb = field.embedding.numpy().astype(np.float64)
+    cen = model._centre_emb.numpy().astype(np.float64)
+    y = np.einsum("pc,pcd->pd", b, emb[field.faces.numpy()[f]])
+    d2 = ((y[:, None, :] - cen[None, :, :]) ** 2).sum(axis=2)  # (P, N)
+    kth = np.sort(d2, axis=1)[:, CONFIG.k_search - 1]
+    must = d2 < kth[:, None] * (1 - 1e-6)
+    rows = kid.numpy()[f]
+    for p in range(len(f)):
+        assert set(np.flatnonzero(must[p])) <= set(rows[p][rows[p] < len(model)])
+    # the centroid bound alone (tables.face_tables' first bound), counted independently
+    tri = field.faces.numpy()
+    centroid = emb[tri].mean(axis=1)
+    r_f = np.linalg.norm(emb[tri] - centroid[:, None, :], axis=2).max(axis=1)
+    dc2 = ((centroid[:, None, :] - cen[None, :, :]) ** 2).sum(axis=2)
+    kth_c = np.sort(dc2, axis=1)[:, CONFIG.k_search - 1]
+    centroid_only = (dc2 <= ((np.sqrt(kth_c) + 2 * r_f) ** 2)[:, None]).sum(axis=1)
+    assert count.numpy().mean() < 0.9 * centroid_only.mean()

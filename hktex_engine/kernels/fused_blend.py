@@ -203,10 +203,13 @@ def blend(
     # attributes (possibly Parameters, detached) are copied into one row a kernel
     tables = [compiled.array(t) for t in (ft.kid, ft.h, ft.d2, ft.edge2, ft.count)]
     per_kernel = [norm, threshold, sharpness, low, high]
-    attrs = torch.zeros((norm.shape[0], ATTR_WIDTH), dtype=torch.float32)
-    attrs[:, :RED] = torch.stack([t.detach().to(torch.float32) for t in per_kernel], dim=1)
-    attrs[:, RED : RED + 3] = colors.detach()
-    args = [*tables, attrs.numpy(), compiled.array(base_color)]
+    # filled in numpy too: torch.zeros of 5,000 x 8 runs in parallel and waited ~1-5 ms a
+    # call for a thread busy elsewhere (a renderer's, a fit's), a render's small calls' cost
+    attrs = np.zeros((norm.shape[0], ATTR_WIDTH), dtype=np.float32)
+    for i, t in enumerate(per_kernel):
+        attrs[:, i] = compiled.array(t.detach())
+    attrs[:, RED : RED + 3] = compiled.array(colors.detach())
+    args = [*tables, attrs, compiled.array(base_color)]
     layered = priority is not None
     prio = np.ascontiguousarray(
         compiled.array(priority.detach()) if layered else np.zeros(1), dtype=np.float32

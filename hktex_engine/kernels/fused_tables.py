@@ -125,6 +125,32 @@ def _within(emb_y, emb_c, order, starts, centroid, radius, r2, n_k, count, out_i
             out_d2[p, t] = found_d2[by_id[t]]
 
 
+def _segment_d2(da, db, eab):
+    """min over u in [0, 1] of |a + u (b - a) - c|^2 from |a - c|^2, |b - c|^2 and
+    |a - b|^2 (``tables.triangle_d2``'s edges; a zero-length edge is its end)."""
+    if not eab > 0.0:
+        return da
+    proj = 0.5 * (da + eab - db)  # (b - a) . (c - a)
+    u = min(max(proj / eab, 0.0), 1.0)
+    return da - 2.0 * u * proj + u * u * eab
+
+
+def _triangle_d2(d0, d1, d2, e01, e02, e12):
+    """``tables.triangle_d2`` for one (face, candidate) pair."""
+    aw = 0.5 * (d0 + e01 - d1)
+    bw = 0.5 * (d0 + e02 - d2)
+    ab = 0.5 * (e01 + e02 - e12)
+    det = e01 * e02 - ab * ab
+    best = min(_segment_d2(d0, d1, e01), _segment_d2(d0, d2, e02), _segment_d2(d1, d2, e12))
+    if det > 0.0:
+        s = (aw * e02 - bw * ab) / det
+        t = (bw * e01 - aw * ab) / det
+        if s >= 0.0 and t >= 0.0 and s + t <= 1.0:
+            inner = d0 - 2.0 * s * aw - 2.0 * t * bw + s * s * e01 + 2.0 * s * t * ab + t * t * e02
+            best = min(best, inner)
+    return max(best, 0.0)
+
+
 def _face_lists(
     tri, rows, vkid, vh, vd2, emb, n_k, k_s, slack, fill,
     count, kid, h, d2, edge2,
@@ -138,6 +164,7 @@ def _face_lists(
     dim = emb.shape[1]
     pos = np.empty((width, 3), np.int64)
     dc2 = np.empty(width, np.float64)
+    far2 = np.empty(width, np.float64)
     buf = np.empty(2 * width, np.float64)
     centroid = np.empty(dim, np.float64)
     k = k_s if k_s < width else width
@@ -186,14 +213,25 @@ def _face_lists(
             s = vd2[r0, pos[t, 0]] + vd2[r1, pos[t, 1]] + vd2[r2, pos[t, 2]]
             dc2[t] = s / 3.0 - quad
         bound = np.inf
+        tight = np.inf
         if n >= k and k > 0:
             kth = max(_kth_smallest(dc2, n, k - 1, buf), 0.0)
             reach = math.sqrt(kth) + 2.0 * far
             bound = reach * reach * (1.0 + 1e-9) + slack
+            # the tighter bound (tables.face_tables): the K_s-th smallest farthest-corner
+            # distance, against each candidate's distance to the triangle
+            for t in range(n):
+                far2[t] = max(vd2[r0, pos[t, 0]], vd2[r1, pos[t, 1]], vd2[r2, pos[t, 2]])
+            tight = _kth_smallest(far2, n, k - 1, buf) * (1.0 + 1e-9) + slack
         m = 0
         for t in range(n):
             if not dc2[t] <= bound:
                 continue
+            if tight < np.inf:
+                i0, i1, i2 = pos[t, 0], pos[t, 1], pos[t, 2]
+                near = _triangle_d2(vd2[r0, i0], vd2[r1, i1], vd2[r2, i2], e01, e02, e12)
+                if near > tight:  # NaN keeps the candidate
+                    continue
             if fill:
                 i0, i1, i2 = pos[t, 0], pos[t, 1], pos[t, 2]
                 kid[f, m] = vkid[r0, i0]
@@ -215,11 +253,14 @@ _kth_smallest = compiled.kth_smallest
 def _kernels():
     """The compiled loops (built on first use, then loaded from numba's disk cache)."""
     global _RESPONSES, _FACES, _WITHIN, _half_row, _kth_smallest, _pair_d2
+    global _segment_d2, _triangle_d2
     if _RESPONSES is None:
         fused_rank._kernels()  # compiles the float16 conversion, inlined here
         _half_row = fused_rank._half_row
         _, _kth_smallest, _, _ = compiled.helpers()
         _RESPONSES = compiled.jit(_vertex_responses, fastmath=compiled.SIMD_SUMS)
+        _segment_d2 = compiled.jit(_segment_d2, inline=True)
+        _triangle_d2 = compiled.jit(_triangle_d2, inline=True)
         _FACES = compiled.jit(_face_lists)
         _pair_d2 = compiled.jit(_pair_d2, inline=True, fastmath=compiled.SIMD_SUMS)
         _WITHIN = compiled.jit(_within, fastmath=compiled.SIMD_SUMS)

@@ -294,6 +294,42 @@ class FaceTables:
     count: torch.Tensor  # (F,) candidates per face (they come first in each row)
 
 
+def _segment_d2(da: torch.Tensor, db: torch.Tensor, eab: torch.Tensor) -> torch.Tensor:
+    """min over u in [0, 1] of |a + u (b - a) - c|^2 from |a - c|^2, |b - c|^2, |a - b|^2."""
+    proj = 0.5 * (da + eab - db)
+    u = torch.where(eab > 0, proj / eab.clamp(min=1e-300), torch.zeros_like(proj)).clamp(0, 1)
+    return da - 2.0 * u * proj + u * u * eab
+
+
+def triangle_d2(d2: torch.Tensor, edge2: torch.Tensor) -> torch.Tensor:
+    """Squared distance from each candidate centre to its face's triangle, in the embedding.
+
+    ``d2`` (F, L, 3): the candidate's squared distances to the three corners; ``edge2`` (F, 3):
+    |e0 - e1|^2, |e0 - e2|^2, |e1 - e2|^2. Only these are needed: with ``a = e1 - e0``,
+    ``b = e2 - e0``, ``w = c - e0`` the Gram entries ``a.w``, ``b.w``, ``a.b`` follow from them
+    (polarisation), and the nearest point of the triangle is the free minimum of the quadratic
+    when it falls inside, else the nearest point of one of the three edges. Degenerate faces
+    (zero area) take their edges only. No library computes point-to-triangle distances in a
+    space of the embedding's dimension from distances alone; here it is a few lines.
+    """
+    d0, d1, d2_ = d2[..., 0], d2[..., 1], d2[..., 2]
+    e01, e02, e12 = (edge2[:, i : i + 1] for i in range(3))
+    aw = 0.5 * (d0 + e01 - d1)
+    bw = 0.5 * (d0 + e02 - d2_)
+    ab = 0.5 * (e01 + e02 - e12)
+    det = e01 * e02 - ab * ab
+    best = torch.minimum(
+        torch.minimum(_segment_d2(d0, d1, e01), _segment_d2(d0, d2_, e02)),
+        _segment_d2(d1, d2_, e12),
+    )
+    safe = torch.where(det > 0, det, torch.ones_like(det))
+    s = (aw * e02 - bw * ab) / safe
+    t = (bw * e01 - aw * ab) / safe
+    inner = d0 - 2 * s * aw - 2 * t * bw + s * s * e01 + 2 * s * t * ab + t * t * e02
+    inside = (det > 0) & (s >= 0) & (t >= 0) & (s + t <= 1)
+    return torch.where(inside, torch.minimum(best, inner), best).clamp(min=0.0)
+
+
 def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> FaceTables:
     """Tables for the unique faces ``faces``: candidates in all three vertex lists and within
     the face's own bound (see the comment below)."""
@@ -334,7 +370,18 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     kth = torch.topk(dc2, k, dim=1, largest=False).values[:, -1].clamp(min=0.0)
     reach = torch.sqrt(kth) + 2.0 * r_f
     slack = 1e-12 * (1.0 + float((emb * emb).sum(dim=2).max()))
+    merged = valid.clone()  # in all three vertex lists (the compiled builder's n entries)
     valid &= dc2 <= (reach * reach * (1 + 1e-9) + slack)[:, None]
+    # Tighter still: a point's distance to a centre is at most the centre's farthest corner
+    # distance (the distance is convex, the face the corners' hull), so its K_s-th nearest
+    # distance is at most U_f = the K_s-th smallest farthest-corner distance, and a centre
+    # can be among its K_s nearest only if the centre's distance to the whole triangle is
+    # within U_f. Measured on a default fit of spot (4,984 kernels): lists of 144 -> 98.
+    far2 = torch.where(merged, d2.max(dim=2).values, torch.full_like(dc2, float("inf")))
+    if far2.shape[1] >= k > 0:
+        u2 = torch.topk(far2, k, dim=1, largest=False).values[:, -1]
+        near2 = triangle_d2(d2, edge2)
+        valid &= ~(near2 > (u2 * (1 + 1e-9) + slack)[:, None])  # NaN keeps a candidate
     # compact each row to its kept entries, kernel order kept (row-major nonzero)
     rr, cc = torch.nonzero(valid, as_tuple=True)
     counts = torch.bincount(rr, minlength=faces.shape[0])
