@@ -26,6 +26,10 @@ import torch
 
 from hktex_engine.kernels import compiled, fused_rank
 
+#: A face takes the triangle bound only when its embedded triangle is this well shaped
+#: (Gram determinant over the squared sum of two edges' squares, ~1 / its condition number):
+#: a sliver's nearest point is ill-conditioned, and the bound must never undercut.
+WELL_SHAPED = 1e-6
 #: Vertices (faces) per thread below which one thread does the call.
 THREAD_MIN_ROWS = 256
 # Output arrays are filled with their padding by numpy before the threads write into them:
@@ -218,6 +222,8 @@ def _face_lists(
             kth = max(_kth_smallest(dc2, n, k - 1, buf), 0.0)
             reach = math.sqrt(kth) + 2.0 * far
             bound = reach * reach * (1.0 + 1e-9) + slack
+        half = 0.5 * (e01 + e02 - e12)
+        if n >= k and k > 0 and e01 * e02 - half * half > WELL_SHAPED * (e01 + e02) ** 2:
             # the tighter bound (tables.face_tables): the K_s-th smallest farthest-corner
             # distance, against each candidate's distance to the triangle
             for t in range(n):

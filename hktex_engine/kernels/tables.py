@@ -377,9 +377,14 @@ def face_tables(field, tables: VertexTables, faces: torch.Tensor, k_s: int) -> F
     # distance is at most U_f = the K_s-th smallest farthest-corner distance, and a centre
     # can be among its K_s nearest only if the centre's distance to the whole triangle is
     # within U_f. Measured on a default fit of spot (4,984 kernels): lists of 144 -> 98.
+    # (well-shaped faces only: fused_tables.WELL_SHAPED)
     far2 = torch.where(merged, d2.max(dim=2).values, torch.full_like(dc2, float("inf")))
     if far2.shape[1] >= k > 0:
         u2 = torch.topk(far2, k, dim=1, largest=False).values[:, -1]
+        e01, e02, e12 = edge2.unbind(dim=1)
+        half = 0.5 * (e01 + e02 - e12)
+        shaped = e01 * e02 - half * half > fused_tables.WELL_SHAPED * (e01 + e02) ** 2
+        u2 = torch.where(shaped, u2, torch.full_like(u2, float("inf")))
         near2 = triangle_d2(d2, edge2)
         valid &= ~(near2 > (u2 * (1 + 1e-9) + slack)[:, None])  # NaN keeps a candidate
     # compact each row to its kept entries, kernel order kept (row-major nonzero)
