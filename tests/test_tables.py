@@ -285,3 +285,20 @@ def test_compiled_face_lists_keep_every_points_nearest_and_are_tighter(spectra3,
     kth_c = np.sort(dc2, axis=1)[:, CONFIG.k_search - 1]
     centroid_only = (dc2 <= ((np.sqrt(kth_c) + 2 * r_f) ** 2)[:, None]).sum(axis=1)
     assert count.numpy().mean() < 0.9 * centroid_only.mean()
+
+
+def test_the_triangle_bound_skips_ill_shaped_faces(spectra3, monkeypatch):
+    """With every face counted as a sliver (``WELL_SHAPED`` 1: no Gram determinant reaches
+    it) the torch builder keeps the centroid bound's lists; by default they are shorter."""
+    from hktex_engine.kernels import fused_tables
+
+    field = SpectralField(spectra3, device="cpu", dtype=torch.float64)
+    model = make_model(field, make_params(spectra3, 300, seed=13), CONFIG)
+    faces = torch.arange(field.n_faces)
+    with torch.no_grad():
+        tables = model.prepare_tables()
+        tight = tables_mod.face_tables(field, tables, faces, CONFIG.k_search)
+        monkeypatch.setattr(fused_tables, "WELL_SHAPED", 1.0)
+        loose = tables_mod.face_tables(field, tables, faces, CONFIG.k_search)
+    assert (tight.count <= loose.count).all()
+    assert tight.count.double().mean() < 0.9 * loose.count.double().mean()
