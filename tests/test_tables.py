@@ -229,9 +229,8 @@ def test_triangle_distance_from_corner_distances_alone():
     np.testing.assert_allclose(got[0], expect, atol=1e-12)
     np.testing.assert_allclose(got[1], [9.25, 5.0, 1.25, 4.0], atol=1e-12)  # segment x in [0, 3]
     np.testing.assert_allclose(got[2], [9.25, 5.0, 2.25, 5.0], atol=1e-12)  # segment y in [0, 1]
-    compiled_one = (
-        fused_tables._triangle_d2
-    )  # the compiled builder's per-pair twin (pure Python here)
+    # the compiled builder's per-pair twin (plain Python until its loops are compiled)
+    compiled_one = fused_tables._triangle_d2
     for f in range(3):
         for i in range(4):
             assert compiled_one(*d2[f, i].tolist(), *edge2[f].tolist()) == pytest.approx(

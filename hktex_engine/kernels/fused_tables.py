@@ -233,13 +233,12 @@ def _face_lists(
         for t in range(n):
             if not dc2[t] <= bound:
                 continue
+            i0, i1, i2 = pos[t, 0], pos[t, 1], pos[t, 2]
             if tight < np.inf:
-                i0, i1, i2 = pos[t, 0], pos[t, 1], pos[t, 2]
                 near = _triangle_d2(vd2[r0, i0], vd2[r1, i1], vd2[r2, i2], e01, e02, e12)
                 if near > tight:  # NaN keeps the candidate
                     continue
             if fill:
-                i0, i1, i2 = pos[t, 0], pos[t, 1], pos[t, 2]
                 kid[f, m] = vkid[r0, i0]
                 h[f, m, 0], h[f, m, 1], h[f, m, 2] = vh[r0, i0], vh[r1, i1], vh[r2, i2]
                 d2[f, m, 0], d2[f, m, 1], d2[f, m, 2] = vd2[r0, i0], vd2[r1, i1], vd2[r2, i2]
