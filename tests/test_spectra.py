@@ -703,6 +703,35 @@ def test_cli_writes_spectra_and_prints_json_summary(mesh, tmp_path, capsys):
     assert "error" in capsys.readouterr().err
 
 
+def test_cli_counts_free_cores_from_before_its_imports(mesh, tmp_path, monkeypatch):
+    """``hktex spectra --workers auto`` measures the cores others keep busy over a window
+    that starts when the command line starts, before the parser imports the commands, so
+    the window is time the command spends anyway and it need not sleep to fill it."""
+    import trimesh
+
+    import hktex_engine.cli as cli
+    from hktex_engine.spectra import cores
+
+    path = tmp_path / "ellipsoid.obj"
+    trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(path)
+    built, seen = [], []
+    real_build = cli.build_parser
+
+    def build():
+        built.append(cores.time.monotonic())
+        return real_build()
+
+    def fake_auto_workers(nodes=None, since=None):
+        seen.append(since)
+        raise ValueError("stop here")  # the command's error path: nothing is computed
+
+    monkeypatch.setattr(cli, "build_parser", build)
+    monkeypatch.setattr(cores, "auto_workers", fake_auto_workers)
+    assert cli.main(["spectra", str(path), "-o", str(tmp_path / "sp")]) == 2
+    (since,) = seen
+    assert since is not None and since.wall_s <= built[0]
+
+
 def test_auto_workers_counts_the_cores_idle_now(monkeypatch):
     """Free cores are the affinity count minus the cores busy now (sampled from /proc/stat),
     falling back to the 1-minute load average where that cannot be read."""

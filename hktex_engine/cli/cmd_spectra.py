@@ -8,7 +8,6 @@ from pathlib import Path
 
 from hktex_engine.cli import add_max_vertices
 from hktex_engine.config import SpectralConfig
-from hktex_engine.spectra.cores import cpu_sample
 
 
 def _floats(text: str) -> tuple[float, ...]:
@@ -80,9 +79,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="processes for independent node solves; 'auto' (default): the free cores",
     )
     add_max_vertices(p)
-    # the free cores are sampled from here, before the heavy imports and the mesh load, so
-    # the window auto_workers needs is time the command spends anyway
-    p.set_defaults(func=run, cpu_since=cpu_sample())
+    p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -110,7 +107,9 @@ def run(args: argparse.Namespace) -> dict:
     mesh = load_mesh(args.mesh, max_vertices=args.max_vertices, read_texture=False)
     t_load = time.perf_counter() - t0
     if args.workers == "auto":
-        args.workers = auto_workers(since=args.cpu_since)
+        # since the command line's first sample (``cli.main``), so the window auto_workers
+        # needs is time the command has spent anyway
+        args.workers = auto_workers(since=getattr(args, "cpu_since", None))
     bar = TerminalProgress("spectra")
     try:
         spectra = compute_spectra(
