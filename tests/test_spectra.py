@@ -262,21 +262,23 @@ def test_workers_fork_only_from_a_single_threaded_process_without_torch(monkeypa
     assert spectra_mod.worker_context().get_start_method() == expected
 
 
-def test_node_solver_choice_follows_size_and_tolerance(mesh):
-    """At the grid's tolerances the block solver is used down to 16 vertices per wanted pair
-    (measured faster there), at machine precision only from 40; either way the same pairs."""
+def test_node_solver_choice_follows_size(mesh):
+    """The block solver from BLOCK_MIN_VERTICES_PER_PAIR vertices per wanted pair (measured
+    faster there at the grid's tolerances and at machine precision alike), sliced ARPACK
+    below; either way the same pairs, to the tolerance asked."""
+    from hktex_engine.spectra import eigensolver
     from hktex_engine.spectra.eigensolver import GRID_TOL, eigs_node, estimate_lambda_k
 
     n = mesh.n_vertices
-    k = n // 20  # 20 vertices per pair: between the two crossovers
+    k = n // 20  # 20 vertices per pair
     L, M, iso, exact, _ = _albo_problem(mesh, k, 0.3, 30.0)
     estimate = estimate_lambda_k(iso[-1], 30.0)
-    vals_grid, _, method_grid = eigs_node(L, M, k, estimate, GRID_TOL["float16"])
-    vals_exact, _, method_exact = eigs_node(L, M, k, estimate, 1e-10)
-    assert method_grid.startswith("block")
-    assert not method_exact.startswith("block")
-    np.testing.assert_allclose(vals_grid, exact, rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(vals_exact, exact, rtol=1e-8, atol=1e-10)
+    for tol, rtol in ((GRID_TOL["float16"], 1e-6), (1e-10, 1e-8)):
+        vals, _, method = eigs_node(L, M, k, estimate, tol)
+        assert method.startswith("block")
+        np.testing.assert_allclose(vals, exact, rtol=rtol, atol=1e-9)
+    vals, _, method = eigs_node(L, M, n // (eigensolver.BLOCK_MIN_VERTICES_PER_PAIR - 1), estimate)
+    assert not method.startswith("block")
 
 
 def _albo_problem(mesh, k: int, theta: float, eta: float):

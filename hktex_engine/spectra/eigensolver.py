@@ -375,8 +375,12 @@ def _orthonormal_block(Z: np.ndarray, rng: np.random.Generator) -> tuple[np.ndar
 #: blocks, 2.9-3.3 K, at K = 64, on spot, bob, marble_bust_01 and a 20k torus alike):
 #: starting at 2.25 K instead of 1.5 K left every solve's block count unchanged and cut a
 #: node's time by 15-37 % at K = 128 (spot 0.119 -> 0.085 s, bob 0.287 -> 0.182, marble
-#: 0.310 -> 0.262, torus 0.978 -> 0.632) and 10-18 % at K = 64.
-CHECK_START = 2.25
+#: 0.310 -> 0.262, torus 0.978 -> 0.632) and 10-18 % at K = 64. Since the later analyses
+#: come where convergence is predicted (:data:`CONVERGENCE_RATE`), a first one at 2.4 K
+#: converges at once more often: 1.3 analyses a node instead of 2.0 for 0.2 more blocks
+#: (42 nodes' logs of spot and bob replayed), measured 2-3 % faster on spot (paired, one
+#: core: 0.0852 -> 0.0835 s) and 0.6 % on blub (2026-12-07).
+CHECK_START = 2.4
 
 #: After a Ritz analysis that has not converged, the next comes where the slowest wanted
 #: pair's residual is predicted to pass: its ratio ``r`` to the tolerance falls by at least
@@ -583,23 +587,17 @@ def eigs_block_lowest(
     return vals, vecs, info.method + " (shift below 0)"
 
 
-#: :func:`eigs_node` uses the block solver from this many vertices per wanted pair on, at
-#: machine-precision tolerances (the isotropic spectrum's). Measured (shared 2-core machine,
-#: paired with plain eigsh): spot (2,930 vertices, K = 128, 23 per pair) block 0.74x of plain
-#: ARPACK, sliced ARPACK faster; tori at 78 per pair (5k / K = 64, 10k / K = 128) block
-#: 1.9-3.2x; 20k / K = 128 (156 per pair) block 1.9x while sliced ARPACK was 0.9x. The
-#: crossover lies between 23 and 78; re-measured 2026-12-03 at tol 1e-10, spot, K = 128:
-#: block 0.176 s a node against sliced 0.181 (level).
-BLOCK_MIN_VERTICES_PER_PAIR = 40
-
-#: The same at the grid nodes' tolerances (``GRID_TOL``, at or above
-#: :data:`PERIODIC_REORTH_MIN_TOL`), where the block solver re-orthogonalises periodically and
-#: stops early: measured 2026-12-03 on spot (one core, mean of 4 nodes, eta 1 / 15 / 60 / 200,
-#: tol 1e-6), K = 64 / 128 / 160 (46 / 23 / 18 vertices per pair): block 0.058 / 0.121 /
-#: 0.206 s against sliced ARPACK 0.092 / 0.186 / 0.306 s (plain eigsh 0.078 / 0.197 / 0.336);
-#: K = 256 (11 per pair): block 0.428 against sliced 0.381. At tol 1e-7, K = 128: 0.135
-#: against 0.193. The crossover lies between 11 and 18.
-BLOCK_MIN_VERTICES_PER_PAIR_AT_GRID_TOL = 16
+#: :func:`eigs_node` uses the block solver from this many vertices per wanted pair on. History:
+#: 40 at machine-precision tolerances and 16 at the grid's, measured 2026-12-03 (spot, K =
+#: 128, tol 1e-10: block 0.176 s against sliced ARPACK 0.181; K = 256 at tol 1e-6: 0.428
+#: against 0.381). Re-measured 2026-12-07 once the block solver's analyses came where
+#: convergence is predicted (one core, spot, best of 2-3): tol 1e-10, the isotropic operator,
+#: K = 64 / 128 / 192 (46 / 23 / 15 per pair): block 0.059 / 0.114 / 0.155 s against sliced
+#: 0.102 / 0.261 / 0.480; K = 256 (11 per pair), anisotropic nodes eta 30 / 200: block
+#: 0.23-0.34 s against sliced 0.74-0.93 at tol 1e-6 and 1e-10 alike, and level (0.65-0.92
+#: against 0.79-0.89) where the mid shift missed lambda_0 and the block solve was redone below
+#: 0. So one threshold, below the smallest ratio measured.
+BLOCK_MIN_VERTICES_PER_PAIR = 10
 
 
 def eigs_node(
@@ -609,15 +607,10 @@ def eigs_node(
     lambda_k_estimate: float | None = None,
     tol: float = BLOCK_TOL,
 ) -> tuple[np.ndarray, np.ndarray, str]:
-    """One grid node's lowest ``k`` pairs by the solver measured faster at this size and
-    tolerance: :func:`eigs_block_lowest` (to ``tol``) where there are enough vertices per
-    wanted pair, :func:`eigs_sliced` (ARPACK, to machine precision) below that."""
-    per_pair = (
-        BLOCK_MIN_VERTICES_PER_PAIR_AT_GRID_TOL
-        if tol >= PERIODIC_REORTH_MIN_TOL
-        else BLOCK_MIN_VERTICES_PER_PAIR
-    )
-    if L.shape[0] >= per_pair * k:
+    """One grid node's lowest ``k`` pairs by the solver measured faster at this size:
+    :func:`eigs_block_lowest` (to ``tol``) where there are enough vertices per wanted pair,
+    :func:`eigs_sliced` (ARPACK, to machine precision) below that."""
+    if L.shape[0] >= BLOCK_MIN_VERTICES_PER_PAIR * k:
         return eigs_block_lowest(L, mass, k, lambda_k_estimate, tol)
     return eigs_sliced(L, mass, k, lambda_k_estimate)
 

@@ -17,7 +17,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from itertools import chain
@@ -114,8 +114,10 @@ def _work_size(config: SpectralConfig, n: int) -> int:
     return min(config.k + p, n - 2)
 
 
-#: A written grid is buffered in memory, not streamed through a scratch file, when its float32
-#: buffer is at most this large (n x nodes x K x 4 bytes: ~10,000 vertices at K = 128).
+#: A written grid is buffered in memory, not streamed through a scratch file, when it is at most
+#: this large in float32 (n x nodes x K x 4 bytes: ~10,000 vertices at K = 128; the buffer
+#: holds it in the storage dtype, float16 by default, plus float32 copies of the nodes that
+#: are copied to others).
 #: Measured on blub (7,106 vertices, 178 MB, two fits on the other core): the scratch file's
 #: writes took the parent 0.78 s during the solves and its transposing finalize 0.86 s after
 #: them; the buffer 0.31 s and its write 0.29 s, both fsynced. Bigger grids keep streaming so
@@ -135,39 +137,45 @@ def _write_vertex_major(path: Path, dtype: np.dtype, shape: tuple, chunks) -> No
 
 
 class _MemorySink:
-    """Keeps every node's aligned eigenvectors in one vertex-major float32 buffer.
+    """Keeps every node's aligned eigenvectors in one vertex-major buffer of the storage dtype.
 
-    float32, whatever the storage dtype: a node copied to another (theta = pi) is realigned
-    from it, and must not be rounded to float16 twice (the file sink's scratch is float32
-    for the same reason). ``array`` is the result in the storage dtype; ``finalize`` writes
-    it in bounded vertex chunks.
+    A node copied to another (theta = pi) is realigned from it and must not be rounded to
+    float16 twice, so the nodes named in ``keep`` are also kept as float32 blocks, the
+    precision the file sink's scratch keeps (:meth:`get` serves only those). Converting each
+    node as it is stored, not the whole float32 buffer at the end, took the conversion off
+    the command's serial tail (0.055 s of ``hktex spectra`` on spot, whose parent stores each
+    node while two workers solve) and halves the buffer's memory. ``finalize`` writes the
+    buffer in bounded vertex chunks.
     """
 
-    def __init__(self, n: int, nodes: int, k: int, dtype: str) -> None:
-        self.dtype = np.dtype(dtype)
-        self.buffer = np.empty((n, nodes, k), dtype=np.float32)
+    def __init__(self, n: int, nodes: int, k: int, dtype: str, keep: Iterable[int] = ()) -> None:
+        self.buffer = np.empty((n, nodes, k), dtype=np.dtype(dtype))
+        self.keep = set(keep)
+        self.kept: dict[int, np.ndarray] = {}
 
     def put(self, g: int, block: np.ndarray) -> None:
-        self.buffer[:, g, :] = block
+        # through float32, as the file sink's scratch rounds it: both sinks store the same bits
+        block32 = np.asarray(block, dtype=np.float32)
+        self.buffer[:, g, :] = block32
+        if g in self.keep:
+            self.kept[g] = block32
 
     def get(self, g: int) -> np.ndarray:
-        return np.asarray(self.buffer[:, g, :], dtype=np.float64)
+        return np.asarray(self.kept[g], dtype=np.float64)
 
     @property
     def array(self) -> np.ndarray:
-        return self.buffer if self.dtype == np.float32 else self.buffer.astype(self.dtype)
+        return self.buffer
 
     def finalize(self, path: Path, chunk_bytes: int = 64 << 20) -> None:
         n, nodes, k = self.buffer.shape
-        rows = max(1, chunk_bytes // (nodes * k * 4))
-        # float32 storage writes the buffer's own rows; float16 converts one chunk at a time
-        chunks = (
-            self.buffer[v0 : v0 + rows].astype(self.dtype, copy=False) for v0 in range(0, n, rows)
-        )
-        _write_vertex_major(path, self.dtype, self.buffer.shape, chunks)
+        rows = max(1, chunk_bytes // (nodes * k * self.buffer.itemsize))
+        chunks = (self.buffer[v0 : v0 + rows] for v0 in range(0, n, rows))
+        _write_vertex_major(path, self.buffer.dtype, self.buffer.shape, chunks)
 
     def close(self) -> None:
-        self.buffer = np.empty((0, 0, 0), dtype=np.float32)
+        self.buffer = np.empty((0, 0, 0), dtype=self.buffer.dtype)
+        self.kept.clear()
 
 
 class _FileSink:
@@ -415,7 +423,8 @@ def compute_spectra(
     if staging is not None and n * G * K * 4 > MEMORY_SINK_MAX_BYTES:
         sink = _FileSink(staging, n, G, K, config.evecs_dtype)
     else:
-        sink = _MemorySink(n, G, K, config.evecs_dtype)
+        holders = {h for *_, src, h in _node_plan(thetas, etas) if src == "copy"}
+        sink = _MemorySink(n, G, K, config.evecs_dtype, keep=holders)
     cold_iter: Iterator[tuple] | None = None
     try:
         t0 = time.perf_counter()
