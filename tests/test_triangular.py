@@ -77,3 +77,38 @@ def test_preload_without_numba_changes_nothing(monkeypatch):
     monkeypatch.setattr(triangular, "HAVE_NUMBA", False)
     assert triangular.preload() is False
     assert not FactorSolve(splu(_indefinite_laplacian(10))).compiled
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_factor_in_a_cached_order_solves_the_original_system(monkeypatch, compiled):
+    """``factor_compiled`` factors ``A`` in a fill-reducing order taken once per sparsity
+    pattern: its solves answer for ``A`` itself (against a dense solve), a second matrix of
+    the same pattern reuses the order (SuperLU's own ordering is not called again) and gets
+    the same fill as its own minimum-degree factor, and the matrix that set the order solves
+    the same whether it came first or not. Without compiled solves SuperLU factors as before."""
+    monkeypatch.setattr(triangular, "_ORDERS", triangular.OrderedDict())
+    monkeypatch.setattr(triangular, "_preloaded", compiled and triangular.HAVE_NUMBA)
+    A = _indefinite_laplacian(20)
+    A2 = _indefinite_laplacian(20, shift=0.7)
+    A2.data *= np.random.default_rng(5).uniform(0.9, 1.1, A2.nnz)
+    A2 = ((A2 + A2.T) * 0.5).tocsc()
+    B = np.random.default_rng(4).standard_normal((A.shape[0], 8))
+    first = triangular.factor_compiled(A, FACTOR_OPTIONS)
+    assert first.compiled == (compiled and triangular.HAVE_NUMBA)
+    np.testing.assert_allclose(
+        first.solve(B), np.linalg.solve(A.toarray(), B), rtol=1e-9, atol=1e-9
+    )
+    if not first.compiled:
+        assert not triangular._ORDERS
+        return
+    calls = []
+    real_splu = triangular.splu
+    monkeypatch.setattr(triangular, "splu", lambda M, **kw: calls.append(kw) or real_splu(M, **kw))
+    second = triangular.factor_compiled(A2, FACTOR_OPTIONS)
+    assert [kw["permc_spec"] for kw in calls] == ["NATURAL"]  # the cached order, no new one
+    dense = np.linalg.solve(A2.toarray(), B)
+    np.testing.assert_allclose(second.solve(B), dense, rtol=1e-9, atol=1e-9 * np.abs(dense).max())
+    own = real_splu(A2, permc_spec="MMD_AT_PLUS_A", **FACTOR_OPTIONS)
+    assert second._lu.L.nnz + second._lu.U.nnz == own.L.nnz + own.U.nnz
+    again = triangular.factor_compiled(A, FACTOR_OPTIONS)
+    np.testing.assert_array_equal(again.solve(B), first.solve(B))

@@ -29,7 +29,7 @@ from scipy.linalg.lapack import dtrtri as _trtri
 from scipy.sparse.linalg import eigsh, splu
 
 from hktex_engine.errors import SpectraError
-from hktex_engine.spectra.triangular import FactorSolve
+from hktex_engine.spectra.triangular import FactorSolve, factor_compiled
 
 #: Shift below the spectrum for shift-invert (meshes are normalised to a bounding box of side
 #: 2, where lambda_1 is O(1)); negative so that L - sigma M is positive definite.
@@ -217,6 +217,14 @@ def _factor(L: sp.spmatrix, mass: np.ndarray, sigma: float):
         return splu(
             (L - sigma * sp.diags(mass)).tocsc(), permc_spec="MMD_AT_PLUS_A", **FACTOR_OPTIONS
         )
+    except RuntimeError as exc:  # exactly singular at this shift
+        raise SpectraError(f"factorisation failed at shift {sigma}: {exc}") from exc
+
+
+def _factor_solve(L: sp.spmatrix, mass: np.ndarray, sigma: float) -> FactorSolve:
+    """``L - sigma M`` factored for :class:`FactorSolve` (``triangular.factor_compiled``)."""
+    try:
+        return factor_compiled((L - sigma * sp.diags(mass)).tocsc(), FACTOR_OPTIONS)
     except RuntimeError as exc:  # exactly singular at this shift
         raise SpectraError(f"factorisation failed at shift {sigma}: {exc}") from exc
 
@@ -447,7 +455,7 @@ def eigs_block(
     if full_every is None:
         full_every = FULL_REORTH_EVERY if tol >= PERIODIC_REORTH_MIN_TOL else 1
     rng = np.random.default_rng(seed)
-    lu = FactorSolve(_factor(L, mass, sigma))  # SuperLU's factor, compiled solves
+    lu = _factor_solve(L, mass, sigma)  # SuperLU's factor, compiled solves where loaded
     sq = np.sqrt(mass)
 
     def apply_s(Y: np.ndarray) -> np.ndarray:  # M^(1/2) (L - sigma M)^-1 M^(1/2) Y

@@ -18,8 +18,12 @@ its workers fork), where they solve at every size.
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.linalg import splu
 
 from hktex_engine.jit import HAVE_NUMBA, SIMD_SUMS, jit
 
@@ -97,8 +101,6 @@ def preload() -> bool:
     if not _preloaded:
         # one solve through the real path loads the loops for the argument types SuperLU's
         # triangles have, so the first solve of a grid compiles nothing
-        from scipy.sparse.linalg import splu
-
         solver = FactorSolve(splu(sp.identity(2, format="csc")), min_n=0)
         solver.solve(np.zeros((2, WIDTH)))
         _preloaded = solver.compiled
@@ -106,23 +108,34 @@ def preload() -> bool:
 
 
 class FactorSolve:
-    """``A^-1 B`` for ``Pr A Pc = L U`` as SciPy's ``splu`` factors it (``B``: (n,) or (n, r))."""
+    """``A^-1 B`` for ``Pr A Pc = L U`` as SciPy's ``splu`` factors it (``B``: (n,) or (n, r)).
 
-    def __init__(self, lu, min_n: int | None = None) -> None:
+    With ``order`` the factor is of ``A[order][:, order]`` (:func:`factor_compiled`), and
+    :meth:`solve` still answers for ``A``: the compiled path folds that permutation into
+    SuperLU's own row and column permutations, so it costs nothing per solve.
+    """
+
+    def __init__(self, lu, min_n: int | None = None, order: np.ndarray | None = None) -> None:
         self._lu = lu
+        self._order = order
         if min_n is None:
             min_n = 0 if _preloaded else COMPILED_MIN_N
         self.compiled = HAVE_NUMBA and lu.shape[0] >= min_n
         if not self.compiled:
             return
-        self._perm_r = lu.perm_r
-        self._perm_c = lu.perm_c
+        n = lu.shape[0]
+        # X[perm_r] = b (gathered: X = b[src]) and x = X[perm_c]; with an order,
+        # A[order][:, order] y = b[order] and x[order] = y
+        inner = np.arange(n) if order is None else order
+        self._src = np.empty(n, dtype=np.int64)
+        self._src[lu.perm_r] = inner
+        self._dst = np.empty(n, dtype=np.int64)
+        self._dst[inner] = lu.perm_c
         lower = sp.csr_matrix(lu.L)
         upper = sp.csr_matrix(lu.U)
         lower.sort_indices()
         upper.sort_indices()
         # the loops read the diagonal by position: last in a row of L, first in a row of U
-        n = lu.shape[0]
         rows = np.arange(n)
         if not (
             np.all(np.diff(lower.indptr) > 0)
@@ -141,15 +154,60 @@ class FactorSolve:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         if not self.compiled:
-            return self._lu.solve(B)
+            if self._order is None:
+                return self._lu.solve(B)
+            out = np.empty(B.shape)
+            out[self._order] = self._lu.solve(B[self._order])
+            return out
         one = B.ndim == 1
         cols = B.reshape(B.shape[0], -1)
         out = np.empty(cols.shape)
         for a in range(0, cols.shape[1], WIDTH):
             z = min(a + WIDTH, cols.shape[1])
             X = np.zeros((cols.shape[0], WIDTH))
-            X[self._perm_r, : z - a] = cols[:, a:z]  # Pr b
+            X[:, : z - a] = cols[self._src, a:z]  # Pr b
             self._forward(*self._lower, X)
             self._back(*self._upper, X)
-            out[:, a:z] = X[self._perm_c, : z - a]  # x = Pc y
+            out[:, a:z] = X[self._dst, : z - a]  # x = Pc y
         return out[:, 0] if one else out
+
+
+#: Fill-reducing orders by sparsity pattern, this process's last few (:func:`factor_compiled`).
+_ORDERS: OrderedDict[bytes, np.ndarray] = OrderedDict()
+ORDERS_KEPT = 4
+
+
+def _pattern_key(A: sp.csc_matrix) -> bytes:
+    h = hashlib.blake2b(digest_size=16)
+    for part in (np.asarray(A.shape, dtype=np.int64), A.indptr, A.indices):
+        h.update(np.ascontiguousarray(part).tobytes())
+    return h.digest()
+
+
+def factor_compiled(A: sp.csc_matrix, options: dict) -> FactorSolve:
+    """SuperLU's factor of ``A`` with compiled solves, in a fill-reducing order computed once
+    per sparsity pattern, where this process solves compiled; SuperLU's own factor and solves
+    elsewhere.
+
+    Every operator of a spectral grid has the mesh's pattern, and SuperLU's minimum-degree
+    ordering depends on the pattern alone, yet ``splu`` recomputes it at every factorisation.
+    Here the order is taken once, from a first factorisation with ``MMD_AT_PLUS_A``, and every
+    factorisation of the pattern (that first matrix's included, so a node's result does not
+    depend on which node a process met first) is of the symmetrically permuted matrix in its
+    natural order: the same fill. SciPy's ``splu`` takes no order of the caller's, hence the
+    permutation. Only where the solves are compiled, which absorb the permutation for free;
+    SuperLU's own solve would pay two gathers a call.
+    """
+    A = sp.csc_matrix(A)
+    compiled = HAVE_NUMBA and (_preloaded or A.shape[0] >= COMPILED_MIN_N)
+    if not compiled:
+        return FactorSolve(splu(A, permc_spec="MMD_AT_PLUS_A", **options))
+    A.sort_indices()
+    key = _pattern_key(A)
+    order = _ORDERS.get(key)
+    if order is None:
+        order = np.argsort(splu(A, permc_spec="MMD_AT_PLUS_A", **options).perm_c)
+        _ORDERS[key] = order
+        while len(_ORDERS) > ORDERS_KEPT:
+            _ORDERS.popitem(last=False)
+    return FactorSolve(splu(A[order][:, order], permc_spec="NATURAL", **options), order=order)
