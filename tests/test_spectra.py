@@ -195,15 +195,17 @@ def test_the_command_line_forks_its_workers_and_stores_the_same_grid(mesh, tmp_p
 @pytest.mark.parametrize("start", ["fork", "spawn"])
 def test_grids_load_the_compiled_solves_before_their_workers(monkeypatch, mesh, start):
     """From PRELOAD_MIN_N vertices a grid loads the compiled triangular solves once: in this
-    process before a forked pool (the workers inherit them), in each spawned worker through
-    the pool's initializer; below it, nowhere."""
+    process (which solves too) before its pool, so forked workers inherit them, and in each
+    spawned worker through the pool's initializer; below it, nowhere. Every worker starts
+    through ``_start_worker`` (its allocator keeps freed memory)."""
     from hktex_engine.spectra import triangular
 
     seen = []
 
     class Pool:  # records how the pool was made, solves in this process
-        def __init__(self, max_workers, mp_context, initializer):
-            seen.append((mp_context.get_start_method(), initializer, triangular._preloaded))
+        def __init__(self, max_workers, mp_context, initializer, initargs):
+            seen.append((mp_context.get_start_method(), initializer, initargs, max_workers))
+            seen.append(triangular._preloaded)
 
         def __enter__(self):
             return self
@@ -231,13 +233,91 @@ def test_grids_load_the_compiled_solves_before_their_workers(monkeypatch, mesh, 
         monkeypatch.setattr(triangular, "_preloaded", False)
         monkeypatch.setattr(spectra_mod, "PRELOAD_MIN_N", min_n)
         assert len(list(spectra_mod._cold_solutions(iter(tasks), mesh.vertices, 2))) == 2
-        method, initializer, parent_loaded = seen.pop()
-        assert method == start
-        if start == "fork":
-            assert initializer is None and parent_loaded == expect
-        else:
-            assert parent_loaded is False
-            assert initializer is (triangular.preload if min_n == 0 else None)
+        parent_loaded = seen.pop()
+        method, initializer, initargs, pool_size = seen.pop()
+        assert method == start and pool_size == 1  # this process is the other solver
+        assert initializer is spectra_mod._start_worker and parent_loaded == expect
+        assert initargs == ((min_n == 0) and start == "spawn",)
+
+
+@pytest.mark.parametrize("total", [None, 12])
+def test_in_order_shares_tasks_with_the_pool_and_keeps_their_order(total):
+    """Results come in task order whoever solved them; while the result needed next is still
+    in the pool this process solves later tasks itself, the pool is never more than
+    ``in_flight`` deep, and closing the iterator early cancels what the pool has not
+    started."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    here, depth, outstanding = [], [], []
+    lock = threading.Lock()
+
+    def pooled(i):
+        time.sleep(0.03)
+        with lock:
+            outstanding.remove(i)
+        return (i, "pool")
+
+    with ThreadPoolExecutor(1) as pool:
+
+        def submit(i):
+            with lock:
+                outstanding.append(i)
+                depth.append(len(outstanding))
+            return pool.submit(pooled, i)
+
+        def solve_here(i):
+            here.append(i)
+            time.sleep(0.03)
+            return (i, "here")
+
+        out = list(spectra_mod._in_order(iter(range(12)), submit, solve_here, 2, 3, total))
+    assert [r[0] for r in out] == list(range(12))
+    assert here and len(here) < 12 and max(depth) <= 2
+    assert all(r[1] == ("here" if r[0] in here else "pool") for r in out)
+
+    first, rest = threading.Event(), threading.Event()
+    with ThreadPoolExecutor(1) as pool:
+        futures = []
+
+        def submit_gated(i):
+            futures.append(pool.submit((first if i == 0 else rest).wait))
+            return futures[-1]
+
+        it = spectra_mod._in_order(iter(range(6)), submit_gated, lambda i: ("here", i), 3, 2)
+        threading.Timer(0.1, first.set).start()
+        assert next(it) is True  # task 0, from the pool, after this process solved 3 and 4
+        it.close()  # what the pool has not started is cancelled
+        rest.set()
+    assert len(futures) == 3 and futures[2].cancelled()  # task 1 may have started
+
+
+def test_keep_freed_memory_stops_the_page_faults_of_a_repeated_allocation():
+    """A process that keeps freed memory (spectra.heap) reuses a freed 9 MB block instead of
+    mapping fresh pages for it each time: counted as minor page faults, in a fresh process
+    so this one's allocator is left alone."""
+    import subprocess
+
+    code = (
+        "import resource, sys, numpy as np\n"
+        "from hktex_engine.spectra.heap import keep_freed_memory\n"
+        "kept = keep_freed_memory() if sys.argv[1] == 'keep' else None\n"
+        "np.ones((2930, 384)).sum()\n"
+        "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "for _ in range(20):\n"
+        "    np.ones((2930, 384)).sum()\n"
+        "print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)\n"
+    )
+    faults = {}
+    for mode in ("keep", "default"):
+        run = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True)
+        assert run.returncode == 0, run.stderr
+        kept, count = run.stdout.split()
+        faults[mode] = int(count)
+    if kept == "None" and not sys.platform.startswith("linux"):
+        pytest.skip("no glibc mallopt here")
+    assert faults["keep"] < 200 < faults["default"]
 
 
 def test_a_grid_solved_with_the_compiled_solves_is_the_same(monkeypatch, mesh, tiny):

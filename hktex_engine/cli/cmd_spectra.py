@@ -87,6 +87,11 @@ def run(args: argparse.Namespace) -> dict:
     from hktex_engine.geometry.mesh import load_mesh
     from hktex_engine.spectra.cores import auto_workers
     from hktex_engine.spectra.grid import compute_spectra
+    from hktex_engine.spectra.heap import keep_freed_memory
+
+    # this process ends with the grid, and solves nodes beside its workers: its allocator
+    # may keep what it frees (spectra.heap)
+    keep_freed_memory()
 
     config = SpectralConfig(
         angles=args.angles,

@@ -17,12 +17,12 @@ import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Iterable, Iterator
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from itertools import chain
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -264,40 +264,115 @@ def worker_context() -> multiprocessing.context.BaseContext:
 PRELOAD_MIN_N = 4_000
 
 
+def _start_worker(preload: bool) -> None:
+    """A grid's worker process, before its first task: it ends with the grid, so its
+    allocator keeps what it frees (``heap``); a spawned one loads the compiled solves."""
+    from hktex_engine.spectra import triangular
+    from hktex_engine.spectra.heap import keep_freed_memory
+
+    keep_freed_memory()
+    if preload:
+        triangular.preload()
+
+
+def _in_order(
+    tasks: Iterator,
+    submit: Callable[[Any], Future],
+    solve_here: Callable[[Any], tuple],
+    in_flight: int,
+    ahead: int,
+    total: int | None = None,
+) -> Iterator[tuple]:
+    """The results of ``tasks`` in order, solved by a pool (``submit``) and by this process.
+
+    The pool is kept ``in_flight`` tasks deep. Whenever the result needed next is still in
+    the pool, this process solves the next task not yet submitted itself (``solve_here``)
+    instead of waiting, while at most ``ahead`` of its own results wait their turn (memory
+    stays bounded by a few bases). So the solving processes are exactly the cores given: on
+    two cores one worker and this process, not two workers beside a third process that aligns
+    and stores, which time-sliced with them (measured: a node took 0.10 s in the pool against
+    0.085 s alone, spot). With the number of tasks known (``total``), the pool is kept one
+    deep for the last few, so this process is not left waiting on a queue it could have
+    shared. Which process solves a task does not change its result.
+    """
+    queue: deque = deque()  # futures and own results, in task order
+    source = iter(tasks)
+    more = True
+    taken = 0
+
+    def next_task() -> Any:
+        nonlocal more, taken
+        task = next(source, None) if more else None
+        more = task is not None
+        taken += more
+        return task
+
+    def depth() -> int:
+        left = None if total is None else total - taken
+        return in_flight if left is None or left > 2 * in_flight else 1
+
+    def top_up() -> None:
+        while more and sum(isinstance(e, Future) for e in queue) < depth():
+            task = next_task()
+            if task is not None:
+                queue.append(submit(task))
+
+    try:
+        top_up()
+        while queue:
+            head = queue[0]
+            if isinstance(head, Future) and not head.done() and more:
+                if sum(not isinstance(e, Future) for e in queue) < ahead:
+                    task = next_task()
+                    if task is not None:
+                        queue.append(solve_here(task))
+                    continue
+            queue.popleft()
+            yield head.result() if isinstance(head, Future) else head
+            top_up()
+    finally:
+        for entry in queue:
+            if isinstance(entry, Future):
+                entry.cancel()
+
+
 def _cold_solutions(
     tasks: Iterator[tuple[sp.csr_matrix, int, float, float]],
     mass: np.ndarray,
     workers: int,
     solver: str = "auto",
+    total: int | None = None,
 ) -> Iterator[tuple]:
     """Independent solves of ``tasks`` (operator, pairs, lambda_k estimate, tolerance) in
-    order; with ``workers > 1`` in a process pool.
+    order, by ``workers`` processes: this one and, with ``workers > 1``, a pool of the
+    others (:func:`_in_order`).
 
-    At most ``2 * workers + 1`` results are in flight, so memory stays bounded by a few bases
-    however large the grid, and the workers keep busy while this process waits on a long
-    task (the isotropic solve, first in the queue, takes 2-3 nodes' time). Workers start as
-    :func:`worker_context` says. From :data:`PRELOAD_MIN_N` vertices the compiled triangular
-    solves are loaded first: here, so forked workers inherit them, or in each spawned worker.
+    The pool is kept two tasks a worker deep, so it stays busy while this process solves
+    or aligns, and at most four results wait here, so memory stays bounded by a few bases
+    however large the grid. Workers start as :func:`worker_context` says. From
+    :data:`PRELOAD_MIN_N` vertices the compiled triangular solves are loaded first: here,
+    before forked workers (which inherit them), and in each spawned worker.
     """
     from threadpoolctl import threadpool_limits
 
     from hktex_engine.spectra import triangular
     from hktex_engine.spectra.eigensolver import solve_node_timed
 
+    def solve_here(task: tuple) -> tuple:
+        L, k, estimate, tol = task
+        return solve_node_timed(L, mass, k, estimate, solver, tol)
+
     preload = len(mass) >= PRELOAD_MIN_N
+    if preload:
+        triangular.preload()
     if workers <= 1:
-        if preload:
-            triangular.preload()
         # one BLAS thread: the block solver's tall-skinny GEMMs ran 2x *slower* with
         # OpenBLAS's 2 threads than with 1 (20k torus, K = 64: 2.03 s against 1.04 s)
         with threadpool_limits(limits=1, user_api="blas"):
-            for L, k, estimate, tol in tasks:
-                yield solve_node_timed(L, mass, k, estimate, solver, tol)
+            yield from map(solve_here, tasks)
         return
     ctx = worker_context()
     forked = ctx.get_start_method() == "fork"
-    if preload and forked:
-        triangular.preload()
     # one BLAS thread per worker (the workers are the parallelism; spawned children read
     # these at start-up, forked ones inherit the limit set below), unless the caller chose
     # otherwise
@@ -305,28 +380,23 @@ def _cold_solutions(
     for v in _THREAD_VARS:
         os.environ.setdefault(v, "1")
     try:
-        # and one here: this process aligns and stores while the workers solve, and
-        # OpenBLAS's spinning second thread took a core from them (alignment measured 17 ms a
-        # node alone, 98 ms beside two workers, 35k vertices)
+        # and one here, which solves too: OpenBLAS's spinning second thread took a core from
+        # the workers (alignment measured 17 ms a node alone, 98 ms beside two workers, 35k)
         with (
             threadpool_limits(limits=1, user_api="blas"),
             ProcessPoolExecutor(
-                max_workers=workers,
+                max_workers=workers - 1,
                 mp_context=ctx,
-                initializer=triangular.preload if preload and not forked else None,
+                initializer=_start_worker,
+                initargs=(preload and not forked,),
             ) as pool,
         ):
-            pending: deque = deque()
-            try:
-                for L, k, estimate, tol in tasks:
-                    pending.append(pool.submit(solve_node_timed, L, mass, k, estimate, solver, tol))
-                    if len(pending) > 2 * workers:
-                        yield pending.popleft().result()
-                while pending:
-                    yield pending.popleft().result()
-            finally:
-                for fut in pending:
-                    fut.cancel()
+
+            def submit(task: tuple) -> Future:
+                L, k, estimate, tol = task
+                return pool.submit(solve_node_timed, L, mass, k, estimate, solver, tol)
+
+            yield from _in_order(tasks, submit, solve_here, 2 * (workers - 1), 4, total)
     finally:  # workers are spawned on demand, so the variables stay set for the pool's life
         for v, old in saved.items():
             if old is None:
@@ -457,7 +527,8 @@ def compute_spectra(
                     if src == "solve"
                 ),
             )
-            cold_iter = _cold_solutions(tasks, mass, workers, solver)
+            total_tasks = 1 + sum(src == "solve" for *_, src, _ in plan)
+            cold_iter = _cold_solutions(tasks, mass, workers, solver, total_tasks)
             iso_vals, iso_vecs, _, _ = next(cold_iter)
         else:
             iso_vals, iso_vecs, _ = eigs_sliced(iso_L, mass, k_first, weyl)
