@@ -12,8 +12,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import min_weight_full_bipartite_matching
+from scipy.optimize import linear_sum_assignment
 
 #: Relative eigenvalue gap below which neighbouring eigenpairs form one cluster for the
 #: block-wise Procrustes (our choice: well above the solver's eigenvalue error, ~1e-6, and
@@ -38,19 +37,6 @@ def eigen_clusters(evals: np.ndarray, rtol: float = CLUSTER_RTOL) -> list[np.nda
     gaps = np.diff(v) > rtol * scale[1:]
     starts = np.r_[0, np.nonzero(gaps)[0] + 1]
     return [order[a:b] for a, b in zip(starts, np.r_[starts[1:], len(v)], strict=True)]
-
-
-def _assignment(C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (rows, cols) pairing that maximises ``sum |C|``: the Hungarian problem.
-
-    Solved by SciPy's LAPJVsp matching (``scipy.sparse.csgraph``), which the mesh code has
-    imported already, instead of ``scipy.optimize.linear_sum_assignment``: importing
-    ``scipy.optimize`` took 0.12 s of a 3.4 s ``hktex spectra`` (spot), and a matching takes
-    0.44 ms against 0.1 ms (K = 128), ~50 a grid. Both find an optimal pairing (the same one
-    on every node of the shared meshes' grids, checked). The weights are shifted by 1 so
-    that no entry is zero, which a sparse matrix would drop as a missing edge.
-    """
-    return min_weight_full_bipartite_matching(sp.csr_matrix(np.abs(C) + 1.0), maximize=True)
 
 
 def _procrustes(C: np.ndarray) -> np.ndarray:
@@ -82,7 +68,9 @@ def align_basis(
     if ref.shape[0] != vecs.shape[0] or evals.shape != (K,):
         raise ValueError("ref, vecs and evals do not agree in shape")
     C = ref.T @ (mass[:, None] * vecs)  # (K_ref, K)
-    rows, cols = _assignment(C)
+    # scipy.sparse.csgraph's LAPJVsp matching (no scipy.optimize import, 0.12 s) was tried
+    # and dropped: it never returned on a 16 x 16 alignment of a test grid (docs/spectra.md)
+    rows, cols = linear_sum_assignment(-np.abs(C))
     matched = cols[np.argsort(rows)]
     rest = np.setdiff1d(np.arange(K), matched)
     rest = rest[np.argsort(evals[rest], kind="stable")]
