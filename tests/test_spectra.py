@@ -294,30 +294,36 @@ def test_in_order_shares_tasks_with_the_pool_and_keeps_their_order(total):
 
 
 def test_keep_freed_memory_stops_the_page_faults_of_a_repeated_allocation():
-    """A process that keeps freed memory (spectra.heap) reuses a freed 9 MB block instead of
-    mapping fresh pages for it each time: counted as minor page faults, in a fresh process
-    so this one's allocator is left alone."""
+    """A process that keeps freed memory (spectra.heap) reuses freed blocks instead of mapping
+    fresh pages for them each time. The pattern is a node solve's in small: three 9 MB arrays
+    a round, freed together, which glibc's adaptive defaults trim from the heap every round
+    (counted as minor page faults, in fresh processes so this one's allocator is left
+    alone)."""
     import subprocess
 
     code = (
         "import resource, sys, numpy as np\n"
         "from hktex_engine.spectra.heap import keep_freed_memory\n"
         "kept = keep_freed_memory() if sys.argv[1] == 'keep' else None\n"
-        "np.ones((2930, 384)).sum()\n"
+        "def round_():\n"
+        "    blocks = [np.ones((2930, 384)) for _ in range(3)]\n"
+        "    return sum(float(b[0, 0]) for b in blocks)\n"
+        "round_()\n"
         "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
-        "for _ in range(20):\n"
-        "    np.ones((2930, 384)).sum()\n"
+        "for _ in range(10):\n"
+        "    round_()\n"
         "print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)\n"
     )
-    faults = {}
+    faults, took = {}, {}
     for mode in ("keep", "default"):
         run = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True)
         assert run.returncode == 0, run.stderr
-        kept, count = run.stdout.split()
+        took[mode], count = run.stdout.split()
         faults[mode] = int(count)
-    if kept == "None" and not sys.platform.startswith("linux"):
+    if took["keep"] != "True":
+        assert not sys.platform.startswith("linux"), "glibc's mallopt refused the settings"
         pytest.skip("no glibc mallopt here")
-    assert faults["keep"] < 200 < faults["default"]
+    assert faults["keep"] < 500 < 5000 < faults["default"]  # measured: 0 and 13,155
 
 
 def test_a_grid_solved_with_the_compiled_solves_is_the_same(monkeypatch, mesh, tiny):

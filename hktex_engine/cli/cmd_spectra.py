@@ -76,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--workers",
         type=_workers,
         default="auto",
-        help="processes for independent node solves; 'auto' (default): the free cores",
+        help="processes that solve nodes, this one included; 'auto' (default): the free cores",
     )
     add_max_vertices(p)
     p.set_defaults(func=run)
