@@ -143,8 +143,8 @@ class _MemorySink:
     float16 twice, so the nodes named in ``keep`` are also kept as float32 blocks, the
     precision the file sink's scratch keeps (:meth:`get` serves only those). Converting each
     node as it is stored, not the whole float32 buffer at the end, took the conversion off
-    the command's serial tail (0.055 s of ``hktex spectra`` on spot, whose parent stores each
-    node while two workers solve) and halves the buffer's memory. ``finalize`` writes the
+    the command's serial tail (0.055 s of ``hktex spectra`` on spot) and halves the buffer's
+    memory. ``finalize`` writes the
     buffer in bounded vertex chunks.
     """
 
