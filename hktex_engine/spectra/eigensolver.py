@@ -26,7 +26,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dtrtri as _trtri
-from scipy.sparse.linalg import eigsh, splu
+from scipy.sparse.linalg import eigsh
 
 from hktex_engine.errors import SpectraError
 from hktex_engine.spectra.triangular import FactorSolve, factor_compiled
@@ -212,17 +212,8 @@ def _rayleigh_ritz(
 FACTOR_OPTIONS = {"diag_pivot_thresh": 0.1, "options": {"SymmetricMode": True}}
 
 
-def _factor(L: sp.spmatrix, mass: np.ndarray, sigma: float):
-    try:
-        return splu(
-            (L - sigma * sp.diags(mass)).tocsc(), permc_spec="MMD_AT_PLUS_A", **FACTOR_OPTIONS
-        )
-    except RuntimeError as exc:  # exactly singular at this shift
-        raise SpectraError(f"factorisation failed at shift {sigma}: {exc}") from exc
-
-
-def _factor_solve(L: sp.spmatrix, mass: np.ndarray, sigma: float) -> FactorSolve:
-    """``L - sigma M`` factored for :class:`FactorSolve` (``triangular.factor_compiled``)."""
+def _factor(L: sp.spmatrix, mass: np.ndarray, sigma: float) -> FactorSolve:
+    """``L - sigma M`` factored for its solves (``triangular.factor_compiled``)."""
     try:
         return factor_compiled((L - sigma * sp.diags(mass)).tocsc(), FACTOR_OPTIONS)
     except RuntimeError as exc:  # exactly singular at this shift
@@ -455,7 +446,7 @@ def eigs_block(
     if full_every is None:
         full_every = FULL_REORTH_EVERY if tol >= PERIODIC_REORTH_MIN_TOL else 1
     rng = np.random.default_rng(seed)
-    lu = _factor_solve(L, mass, sigma)  # SuperLU's factor, compiled solves where loaded
+    lu = _factor(L, mass, sigma)  # SuperLU's factor, compiled solves where loaded
     sq = np.sqrt(mass)
 
     def apply_s(Y: np.ndarray) -> np.ndarray:  # M^(1/2) (L - sigma M)^-1 M^(1/2) Y

@@ -483,6 +483,7 @@ def compute_spectra(
     A, S = len(thetas), len(etas)
     G = A * S
     total = G + 1
+    plan = _node_plan(thetas, etas)
     timings: dict[str, float] = {}
     staging: Path | None = None
     sink: _MemorySink | _FileSink
@@ -493,7 +494,7 @@ def compute_spectra(
     if staging is not None and n * G * K * 4 > MEMORY_SINK_MAX_BYTES:
         sink = _FileSink(staging, n, G, K, config.evecs_dtype)
     else:
-        holders = {h for *_, src, h in _node_plan(thetas, etas) if src == "copy"}
+        holders = {h for *_, src, h in plan if src == "copy"}
         sink = _MemorySink(n, G, K, config.evecs_dtype, keep=holders)
     cold_iter: Iterator[tuple] | None = None
     try:
@@ -509,7 +510,6 @@ def compute_spectra(
         area = mass.sum()
         weyl = 4.0 * np.pi * k_first / area  # lambda_k ~ 4 pi k / area on a surface
         iso_L = cotangent_stiffness(V, F)
-        plan = _node_plan(thetas, etas)
         # the isotropic spectrum is stored in float64 (the biharmonic embedding, the alignment
         # reference): solved to the solver's own tolerance; the nodes to their storage's
         tol = GRID_TOL[config.evecs_dtype]

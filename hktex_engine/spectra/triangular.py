@@ -107,6 +107,15 @@ def preload() -> bool:
     return _preloaded
 
 
+def solves_compiled(n: int, min_n: int | None = None) -> bool:
+    """Whether this process solves an ``n``-unknown factor with the compiled loops: from
+    ``min_n`` unknowns, by default from :data:`COMPILED_MIN_N`, or at every size once
+    :func:`preload` has run."""
+    if min_n is None:
+        min_n = 0 if _preloaded else COMPILED_MIN_N
+    return HAVE_NUMBA and n >= min_n
+
+
 class FactorSolve:
     """``A^-1 B`` for ``Pr A Pc = L U`` as SciPy's ``splu`` factors it (``B``: (n,) or (n, r)).
 
@@ -118,9 +127,7 @@ class FactorSolve:
     def __init__(self, lu, min_n: int | None = None, order: np.ndarray | None = None) -> None:
         self._lu = lu
         self._order = order
-        if min_n is None:
-            min_n = 0 if _preloaded else COMPILED_MIN_N
-        self.compiled = HAVE_NUMBA and lu.shape[0] >= min_n
+        self.compiled = solves_compiled(lu.shape[0], min_n)
         if not self.compiled:
             return
         n = lu.shape[0]
@@ -199,8 +206,7 @@ def factor_compiled(A: sp.csc_matrix, options: dict) -> FactorSolve:
     SuperLU's own solve would pay two gathers a call.
     """
     A = sp.csc_matrix(A)
-    compiled = HAVE_NUMBA and (_preloaded or A.shape[0] >= COMPILED_MIN_N)
-    if not compiled:
+    if not solves_compiled(A.shape[0]):
         return FactorSolve(splu(A, permc_spec="MMD_AT_PLUS_A", **options))
     A.sort_indices()
     key = _pattern_key(A)
